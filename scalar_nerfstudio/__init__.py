@@ -1,0 +1,1 @@
+"""SCALAR-NeRF as a nerfstudio method plugin."""

@@ -1,0 +1,157 @@
+"""SCALAR-NeRF field: hash-grid encoder + shared decoder + per-image appearance embedding.
+
+The decoder is its own module so that a block's local model can start from a copy of the global
+model's decoder (fine-tuned, frozen or replaced), while the encoder is always the block's own.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal, Optional, Type
+
+import torch
+from nerfstudio.configs.base_config import InstantiateConfig
+from nerfstudio.field_components.activations import trunc_exp
+from nerfstudio.field_components.encodings import SHEncoding
+from torch import Tensor, nn
+
+from scalar_nerfstudio.encodings import HashGridEncoding
+
+# Values beyond this magnitude are clamped before contraction: far enough to contract to the
+# boundary (2 - 1e-30 == 2 in float32) and small enough that squaring cannot overflow float32.
+_MAX_COORDINATE = 1e18
+
+
+def contract(positions: Tensor) -> Tensor:
+    """Mip-NeRF 360 scene contraction (L2): x for |x| <= 1, (2 - 1/|x|) x/|x| beyond.
+
+    Args:
+        positions: [N, 3] world positions (any finite or infinite values; NaN maps to the origin).
+
+    Returns:
+        [N, 3] contracted positions, inside the closed ball of radius 2.
+    """
+    x = torch.nan_to_num(positions, nan=0.0, posinf=_MAX_COORDINATE, neginf=-_MAX_COORDINATE)
+    x = x.clamp(-_MAX_COORDINATE, _MAX_COORDINATE)
+    scale = x.abs().amax(dim=-1, keepdim=True).clamp_min(1e-30)
+    norm = scale * torch.linalg.vector_norm(x / scale, dim=-1, keepdim=True)
+    outside = (2.0 - 1.0 / norm.clamp_min(1.0)) * (x / norm.clamp_min(1.0))
+    return torch.where(norm <= 1.0, x, outside)
+
+
+def contract_to_unit_cube(positions: Tensor) -> Tensor:
+    """[N, 3] world positions -> [N, 3] in [0, 1]^3 (contracted ball of radius 2 mapped to the cube)."""
+    return (contract(positions) / 4.0 + 0.5).clamp(0.0, 1.0)
+
+
+class Decoder(nn.Module):
+    """MLP decoder of depth 5 (2 density layers + 3 colour layers), all hidden layers of one width.
+
+    Args:
+        in_dim: encoder output size (levels * features per level).
+        hidden_dim: width of every hidden layer.
+        geo_feat_dim: features passed from the density head to the colour head.
+        direction_dim: size of the encoded view direction.
+        appearance_dim: size of the per-image appearance embedding.
+    """
+
+    def __init__(
+        self, in_dim: int, hidden_dim: int, geo_feat_dim: int, direction_dim: int, appearance_dim: int
+    ) -> None:
+        super().__init__()
+        self.geo_feat_dim = geo_feat_dim
+        self.density_mlp = nn.Sequential(
+            nn.Linear(in_dim, hidden_dim), nn.ReLU(inplace=True), nn.Linear(hidden_dim, 1 + geo_feat_dim)
+        )
+        self.colour_mlp = nn.Sequential(
+            nn.Linear(geo_feat_dim + direction_dim + appearance_dim, hidden_dim),
+            nn.ReLU(inplace=True),
+            nn.Linear(hidden_dim, hidden_dim),
+            nn.ReLU(inplace=True),
+            nn.Linear(hidden_dim, 3),
+        )
+
+    def density(self, features: Tensor) -> tuple[Tensor, Tensor]:
+        """[N, in_dim] encoder features -> ([N] density in 1/world unit, [N, geo_feat_dim] features)."""
+        out = self.density_mlp(features)
+        density = trunc_exp(out[:, 0] - 1.0)
+        return density, out[:, 1:]
+
+    def colour(self, geo_features: Tensor, encoded_directions: Tensor, appearance: Tensor) -> Tensor:
+        """[N, geo], [N, dir], [N, app] -> [N, 3] RGB in [0, 1]."""
+        return torch.sigmoid(self.colour_mlp(torch.cat([geo_features, encoded_directions, appearance], dim=-1)))
+
+
+@dataclass
+class ScalarFieldConfig(InstantiateConfig):
+    """Hyper-parameters of the field (paper Sec. 4 defaults)."""
+
+    _target: Type = field(default_factory=lambda: ScalarField)
+    num_levels: int = 16
+    """Hash-grid levels."""
+    features_per_level: int = 4
+    """Features per level."""
+    log2_hashmap_size: int = 19
+    """log2 of the hash table rows per level (T = 2^19 in the paper)."""
+    base_resolution: int = 16
+    """Coarsest grid resolution (cells per axis of the contracted cube)."""
+    max_resolution: int = 2048
+    """Finest grid resolution (cells per axis of the contracted cube)."""
+    encoder_implementation: Literal["auto", "cpp", "torch"] = "auto"
+    """Hash-grid kernel: "auto" uses the C++ CPU kernel on CPU when it builds, torch otherwise / on CUDA."""
+    hidden_dim: int = 128
+    """Decoder width."""
+    geo_feat_dim: int = 15
+    """Features from the density head to the colour head."""
+    appearance_dim: int = 8
+    """Per-image appearance embedding size (NeRF-W style)."""
+    sh_degree: int = 4
+    """Spherical-harmonics levels of the view-direction encoding (levels^2 outputs)."""
+
+
+class ScalarField(nn.Module):
+    """Encoder + decoder + appearance embedding, on flat point batches.
+
+    Args:
+        config: field hyper-parameters.
+        num_images: number of training images (appearance embeddings).
+    """
+
+    def __init__(self, config: ScalarFieldConfig, num_images: int) -> None:
+        super().__init__()
+        self.config = config
+        self.encoder = HashGridEncoding(
+            num_levels=config.num_levels,
+            features_per_level=config.features_per_level,
+            log2_hashmap_size=config.log2_hashmap_size,
+            base_resolution=config.base_resolution,
+            max_resolution=config.max_resolution,
+            implementation=config.encoder_implementation,
+        )
+        self.direction_encoding = SHEncoding(levels=config.sh_degree, implementation="torch")
+        self.decoder = Decoder(
+            in_dim=self.encoder.get_out_dim(),
+            hidden_dim=config.hidden_dim,
+            geo_feat_dim=config.geo_feat_dim,
+            direction_dim=self.direction_encoding.get_out_dim(),
+            appearance_dim=config.appearance_dim,
+        )
+        self.appearance = nn.Embedding(max(num_images, 1), config.appearance_dim)
+        nn.init.normal_(self.appearance.weight, std=0.01)
+
+    def density_at_unit(self, unit_positions: Tensor) -> tuple[Tensor, Tensor]:
+        """[N, 3] contracted unit-cube positions -> ([N] density, [N, geo_feat_dim] features)."""
+        return self.decoder.density(self.encoder(unit_positions))
+
+    def appearance_for(self, camera_indices: Optional[Tensor], num_points: int) -> Tensor:
+        """[N] training-image indices -> [N, app]; the mean embedding when not training or no index."""
+        if self.training and camera_indices is not None:
+            return self.appearance(camera_indices.clamp(0, self.appearance.num_embeddings - 1))
+        mean = self.appearance.weight.mean(dim=0, keepdim=True)
+        return mean.expand(num_points, -1)
+
+    def colour(self, geo_features: Tensor, directions: Tensor, camera_indices: Optional[Tensor]) -> Tensor:
+        """[N, geo], [N, 3] unit view directions, [N] image indices -> [N, 3] RGB."""
+        encoded = self.direction_encoding(directions)  # torch SH takes unit vectors in [-1, 1]
+        appearance = self.appearance_for(camera_indices, geo_features.shape[0])
+        return self.decoder.colour(geo_features, encoded, appearance)

@@ -1,0 +1,76 @@
+"""Volume rendering on a dense ``[num_rays, num_samples]`` layout.
+
+Samples that were skipped (empty space, occluded) carry density 0, so they contribute nothing and
+need no field evaluation. All functions stay finite for densities in ``[0, inf]``, zero-length and
+very long intervals, and rays that hit nothing.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+# exp(-MAX_OPTICAL_DEPTH) is ~1e-22: any larger optical depth is fully opaque in float32 anyway.
+MAX_OPTICAL_DEPTH = 50.0
+
+
+def alphas_from_densities(densities: Tensor, deltas: Tensor) -> Tensor:
+    """Opacity of each interval.
+
+    Args:
+        densities: [R, S] volume density (1 / world unit), >= 0; NaN is treated as 0.
+        deltas: [R, S] interval lengths in world units, >= 0.
+
+    Returns:
+        alphas: [R, S] in [0, 1].
+    """
+    optical_depth = (torch.nan_to_num(densities, nan=0.0) * deltas).clamp(0.0, MAX_OPTICAL_DEPTH)
+    return 1.0 - torch.exp(-optical_depth)
+
+
+def weights_from_alphas(alphas: Tensor) -> tuple[Tensor, Tensor]:
+    """Volume-rendering weights ``w_i = T_i * alpha_i`` with ``T_i = prod_{j<i} (1 - alpha_j)``.
+
+    Computed through the log-transmittance cumsum so that it is differentiable everywhere (also at
+    alpha == 1, where a cumprod-based division would produce NaN gradients).
+
+    Args:
+        alphas: [R, S] in [0, 1].
+
+    Returns:
+        weights: [R, S] in [0, 1], summing to <= 1 per ray.
+        transmittance: [R, S] light reaching each sample (before it), non-increasing along the ray.
+    """
+    optical_depth = -torch.log1p(-alphas.clamp(0.0, 1.0 - 1e-7))
+    accumulated = torch.cumsum(optical_depth, dim=-1)
+    exclusive = torch.cat([torch.zeros_like(accumulated[..., :1]), accumulated[..., :-1]], dim=-1)
+    transmittance = torch.exp(-exclusive)
+    weights = (transmittance * alphas).clamp(0.0, 1.0)
+    return weights, transmittance
+
+
+def render_weights(densities: Tensor, deltas: Tensor) -> tuple[Tensor, Tensor]:
+    """[R, S] densities and interval lengths -> ([R, S] weights, [R, S] transmittance)."""
+    return weights_from_alphas(alphas_from_densities(densities, deltas))
+
+
+def composite(weights: Tensor, values: Tensor) -> Tensor:
+    """Weighted sum along the ray: [R, S] weights, [R, S, C] values -> [R, C]."""
+    return torch.sum(weights[..., None] * values, dim=-2)
+
+
+def render_depth(weights: Tensor, t_mid: Tensor, t_far: Tensor) -> Tensor:
+    """Expected termination depth, normalised by accumulation.
+
+    Args:
+        weights: [R, S].
+        t_mid: [R, S] sample mid-points along the ray (world units).
+        t_far: [R, 1] far bound used for rays that hit nothing.
+
+    Returns:
+        depth: [R, 1], in [t_mid.min, t_far].
+    """
+    accumulation = weights.sum(dim=-1, keepdim=True)
+    depth = torch.sum(weights * t_mid, dim=-1, keepdim=True) / accumulation.clamp_min(1e-10)
+    depth = torch.where(accumulation > 1e-10, depth, t_far)
+    return torch.minimum(torch.nan_to_num(depth, nan=0.0, posinf=0.0), t_far)

@@ -1,0 +1,123 @@
+"""Ray sampling for unbounded scenes and a CPU-friendly occupancy grid for empty-space skipping.
+
+nerfacc's occupancy grid is CUDA-only; this one is plain torch. It stores a density estimate per
+cell of a ``[G, G, G]`` grid over the *contracted* scene cube ``[0, 1]^3`` (see
+``fields.scalar_field.contract_to_unit_cube``), so one grid covers the whole unbounded scene.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import torch
+from torch import Tensor, nn
+
+
+def lin_disp_spacing(t: Tensor) -> Tensor:
+    """Mip-NeRF 360 style spacing: linear in ``t`` up to 1 world unit, linear in disparity beyond.
+
+    Maps t in [0, inf) to s in [0, 1).
+    """
+    return torch.where(t < 1.0, t / 2.0, 1.0 - 1.0 / (2.0 * t.clamp_min(1.0)))
+
+
+def lin_disp_spacing_inverse(s: Tensor) -> Tensor:
+    """Inverse of :func:`lin_disp_spacing`: s in [0, 1) -> t in [0, inf)."""
+    return torch.where(s < 0.5, 2.0 * s, 1.0 / (2.0 * (1.0 - s).clamp_min(1e-6)))
+
+
+def sample_intervals(nears: Tensor, fars: Tensor, num_samples: int, jitter: bool) -> tuple[Tensor, Tensor]:
+    """Intervals along each ray, evenly spaced in :func:`lin_disp_spacing` space.
+
+    Args:
+        nears: [R, 1] near bound (world units, >= 0).
+        fars: [R, 1] far bound (world units, > nears).
+        num_samples: S, intervals per ray.
+        jitter: shift all bins of a ray by one random fraction (stratified sampling, training).
+
+    Returns:
+        t_starts, t_ends: [R, S] interval bounds in world units, contiguous, non-decreasing.
+    """
+    s_near, s_far = lin_disp_spacing(nears), lin_disp_spacing(fars)
+    bins = torch.linspace(0.0, 1.0, num_samples + 1, device=nears.device, dtype=nears.dtype)[None, :]
+    if jitter:
+        offset = (torch.rand_like(nears) - 0.5) / num_samples
+        bins = (bins + offset).clamp(0.0, 1.0)
+    t_edges = lin_disp_spacing_inverse(s_near + (s_far - s_near) * bins)
+    t_edges = torch.maximum(torch.minimum(t_edges, fars), nears)
+    return t_edges[:, :-1], t_edges[:, 1:]
+
+
+class OccupancyGrid(nn.Module):
+    """Occupancy over the contracted unit cube, updated from the field's density as it trains.
+
+    Args:
+        resolution: G, cells per axis.
+        update_every: steps between updates.
+        warmup_steps: before this step every update re-evaluates all cells; later, a random
+            quarter of the cells per update.
+        ema_decay: exponential moving average decay of a cell's density estimate.
+        density_threshold: a cell is occupied when its density estimate exceeds
+            min(threshold, mean estimate) (1 / world unit).
+    """
+
+    def __init__(
+        self,
+        resolution: int = 64,
+        update_every: int = 16,
+        warmup_steps: int = 256,
+        ema_decay: float = 0.95,
+        density_threshold: float = 0.01,
+    ) -> None:
+        super().__init__()
+        self.resolution = resolution
+        self.update_every = update_every
+        self.warmup_steps = warmup_steps
+        self.ema_decay = ema_decay
+        self.density_threshold = density_threshold
+        num_cells = resolution**3
+        # A fresh grid is all occupied: nothing is skipped until the field has been looked at.
+        self.register_buffer("density_ema", torch.full((num_cells,), float("inf")))
+        self.register_buffer("occupied", torch.ones(num_cells, dtype=torch.bool))
+
+    def cell_indices(self, unit_positions: Tensor) -> Tensor:
+        """[M, 3] positions in the contracted unit cube -> [M] flat cell indices (always in range)."""
+        g = self.resolution
+        cells = (torch.nan_to_num(unit_positions, nan=0.0) * g).long().clamp(0, g - 1)
+        return cells[:, 0] * (g * g) + cells[:, 1] * g + cells[:, 2]
+
+    def is_occupied(self, unit_positions: Tensor) -> Tensor:
+        """[M, 3] contracted unit-cube positions -> [M] bool."""
+        return self.occupied[self.cell_indices(unit_positions)]
+
+    def occupied_fraction(self) -> float:
+        """Share of cells currently marked occupied."""
+        return float(self.occupied.float().mean())
+
+    @torch.no_grad()
+    def update(self, step: int, density_fn: Callable[[Tensor], Tensor]) -> None:
+        """Re-estimate density at a jittered point of (some) cells and re-threshold.
+
+        Args:
+            step: training step; nothing happens unless ``step % update_every == 0``.
+            density_fn: [M, 3] contracted unit-cube positions -> [M] density (1 / world unit).
+        """
+        if step % self.update_every != 0:
+            return
+        g = self.resolution
+        device = self.density_ema.device
+        num_cells = g**3
+        if step < self.warmup_steps:
+            cells = torch.arange(num_cells, device=device)
+        else:
+            cells = torch.randint(0, num_cells, (num_cells // 4,), device=device)
+        coords = torch.stack([cells // (g * g), (cells // g) % g, cells % g], dim=-1).float()
+        positions = (coords + torch.rand_like(coords)) / g
+        densities = torch.nan_to_num(density_fn(positions).reshape(-1).float(), nan=0.0, posinf=1e6)
+        previous = self.density_ema[cells]
+        decayed = torch.where(torch.isinf(previous), densities, previous * self.ema_decay)
+        self.density_ema[cells] = torch.maximum(decayed, densities)
+        finite = self.density_ema[torch.isfinite(self.density_ema)]
+        mean_density = float(finite.mean()) if finite.numel() > 0 else 0.0
+        threshold = min(self.density_threshold, mean_density)
+        self.occupied.copy_(self.density_ema > threshold)

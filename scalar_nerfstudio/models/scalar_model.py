@@ -1,0 +1,199 @@
+"""The SCALAR-NeRF model: one class for the global model and for every block's local model.
+
+Rendering path (per ray batch, flat tensors, no nerfstudio RaySamples on the hot path):
+
+1. ``S`` intervals per ray, evenly spaced in Mip-NeRF 360's linear/disparity spacing.
+2. Samples in empty cells of the :class:`OccupancyGrid` are dropped.
+3. A no-grad density pass over the remaining samples finds where each ray's transmittance has
+   fallen below ``transmittance_threshold``; those occluded samples are dropped too.
+4. The field (density and colour, with gradients) runs only on the surviving samples, which are
+   scattered back into a dense ``[R, S]`` layout for volume rendering.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Dict, List, Literal, Optional, Tuple, Type
+
+import torch
+from nerfstudio.cameras.rays import RayBundle
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
+from nerfstudio.models.base_model import Model, ModelConfig
+from torch import Tensor
+from torch.nn import Parameter
+
+from scalar_nerfstudio.fields.scalar_field import ScalarField, ScalarFieldConfig, contract_to_unit_cube
+from scalar_nerfstudio.metrics import ImageMetrics
+from scalar_nerfstudio.model_components.rendering import (
+    composite,
+    render_depth,
+    render_weights,
+    weights_from_alphas,
+    alphas_from_densities,
+)
+from scalar_nerfstudio.model_components.sampling import OccupancyGrid, sample_intervals
+
+_CHUNK = 1 << 16
+
+
+@dataclass
+class ScalarModelConfig(ModelConfig):
+    """SCALAR-NeRF model (global or local)."""
+
+    _target: Type = field(default_factory=lambda: ScalarModel)
+    field: ScalarFieldConfig = field(default_factory=ScalarFieldConfig)
+    """Encoder / decoder hyper-parameters."""
+    near_plane: float = 0.05
+    """Ray start (world units of the normalised scene)."""
+    far_plane: float = 1000.0
+    """Ray end; far points contract to the boundary of the unit cube."""
+    num_samples_per_ray: int = 64
+    """Intervals per ray before empty-space and occlusion skipping."""
+    occupancy_resolution: int = 64
+    """Occupancy-grid cells per axis of the contracted cube."""
+    occupancy_update_every: int = 16
+    """Steps between occupancy-grid updates."""
+    occupancy_warmup_steps: int = 256
+    """Steps during which every occupancy update re-evaluates all cells."""
+    occupancy_density_threshold: float = 0.01
+    """A cell is empty when its density stays below min(this, mean density)."""
+    transmittance_threshold: float = 1e-3
+    """Samples behind the point where a ray's transmittance drops below this are not evaluated."""
+    background_color: Literal["random", "grey"] = "random"
+    """Training background (random teaches opaque geometry); evaluation always uses grey."""
+
+
+class ScalarModel(Model):
+    """Hash-grid NeRF with an occupancy grid, a shared-decoder field and per-image appearance."""
+
+    config: ScalarModelConfig
+
+    def populate_modules(self) -> None:
+        """Build the field, the occupancy grid and the metrics (called by ``Model.__init__``)."""
+        self.config.enable_collider = True
+        self.config.collider_params = {"near_plane": self.config.near_plane, "far_plane": self.config.far_plane}
+        super().populate_modules()
+        self.field: ScalarField = self.config.field.setup(num_images=self.num_train_data)
+        self.occupancy = OccupancyGrid(
+            resolution=self.config.occupancy_resolution,
+            update_every=self.config.occupancy_update_every,
+            warmup_steps=self.config.occupancy_warmup_steps,
+            density_threshold=self.config.occupancy_density_threshold,
+        )
+        self.image_metrics = ImageMetrics()
+
+    # ----------------------------------------------------------------------------------- training
+    def get_param_groups(self) -> Dict[str, List[Parameter]]:
+        """Separate groups so the decoder can be fine-tuned with its own learning rate (or frozen)."""
+        return {
+            "encoder": list(self.field.encoder.parameters()),
+            "decoder": list(self.field.decoder.parameters()),
+            "appearance": list(self.field.appearance.parameters()),
+        }
+
+    def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
+        """Update the occupancy grid before training iterations."""
+        return [
+            TrainingCallback(
+                where_to_run=[TrainingCallbackLocation.BEFORE_TRAIN_ITERATION],
+                update_every_num_iters=1,
+                func=self._update_occupancy,
+            )
+        ]
+
+    def _update_occupancy(self, step: int) -> None:
+        self.occupancy.update(step, self._density_no_grad)
+
+    @torch.no_grad()
+    def _density_no_grad(self, unit_positions: Tensor) -> Tensor:
+        """[M, 3] contracted unit-cube positions -> [M] density, evaluated in chunks without grad."""
+        return torch.cat(
+            [self.field.density_at_unit(chunk)[0] for chunk in torch.split(unit_positions, _CHUNK)]
+        ) if unit_positions.shape[0] > 0 else unit_positions.new_zeros(0)
+
+    # ---------------------------------------------------------------------------------- rendering
+    def get_outputs(self, ray_bundle: RayBundle) -> Dict[str, Tensor]:
+        """Render ``rgb`` [R, 3], ``depth`` [R, 1], ``accumulation`` [R, 1] for a batch of rays."""
+        origins = ray_bundle.origins.reshape(-1, 3)
+        directions = ray_bundle.directions.reshape(-1, 3)
+        num_rays = origins.shape[0]
+        nears = ray_bundle.nears.reshape(-1, 1) if ray_bundle.nears is not None else origins.new_full((num_rays, 1), self.config.near_plane)
+        fars = ray_bundle.fars.reshape(-1, 1) if ray_bundle.fars is not None else origins.new_full((num_rays, 1), self.config.far_plane)
+        camera_indices = ray_bundle.camera_indices.reshape(-1) if ray_bundle.camera_indices is not None else None
+
+        t_starts, t_ends = sample_intervals(nears, fars, self.config.num_samples_per_ray, jitter=self.training)
+        t_mid = (t_starts + t_ends) / 2.0
+        deltas = t_ends - t_starts
+        num_samples = t_mid.shape[1]
+        positions = origins[:, None, :] + directions[:, None, :] * t_mid[..., None]  # [R, S, 3]
+        unit_positions = contract_to_unit_cube(positions.reshape(-1, 3))  # [R*S, 3]
+
+        sample_ids = self._visible_samples(unit_positions, deltas)  # [M] flat indices into R*S
+        ray_ids = torch.div(sample_ids, num_samples, rounding_mode="floor")
+        density, geo = self.field.density_at_unit(unit_positions[sample_ids])
+        point_indices = camera_indices[ray_ids] if camera_indices is not None else None
+        rgb_points = self.field.colour(geo, directions[ray_ids], point_indices)
+
+        densities = torch.zeros(num_rays * num_samples, dtype=density.dtype, device=density.device)
+        densities = densities.index_put((sample_ids,), density).reshape(num_rays, num_samples)
+        colours = torch.zeros(num_rays * num_samples, 3, dtype=rgb_points.dtype, device=rgb_points.device)
+        colours = colours.index_put((sample_ids,), rgb_points).reshape(num_rays, num_samples, 3)
+
+        weights, _ = render_weights(densities, deltas)
+        accumulation = weights.sum(dim=-1, keepdim=True)
+        background = self._background(num_rays, origins)
+        rgb = composite(weights, colours) + (1.0 - accumulation) * background
+        depth = render_depth(weights, t_mid, fars)
+        samples_per_ray = torch.bincount(ray_ids, minlength=num_rays).to(rgb.dtype)[:, None]
+        return {"rgb": rgb, "depth": depth, "accumulation": accumulation, "samples_per_ray": samples_per_ray}
+
+    @torch.no_grad()
+    def _visible_samples(self, unit_positions: Tensor, deltas: Tensor) -> Tensor:
+        """Indices [M] (into the flat [R*S] samples) that are in occupied cells and not occluded."""
+        num_rays, num_samples = deltas.shape
+        occupied = self.occupancy.is_occupied(unit_positions)  # [R*S]
+        candidate_ids = torch.nonzero(occupied).squeeze(-1)
+        if candidate_ids.numel() == 0 or self.config.transmittance_threshold <= 0:
+            return candidate_ids
+        densities = torch.zeros(num_rays * num_samples, device=deltas.device)
+        densities[candidate_ids] = self._density_no_grad(unit_positions[candidate_ids])
+        _, transmittance = weights_from_alphas(alphas_from_densities(densities.reshape(num_rays, num_samples), deltas))
+        visible = occupied & (transmittance.reshape(-1) > self.config.transmittance_threshold)
+        return torch.nonzero(visible).squeeze(-1)
+
+    def _background(self, num_rays: int, like: Tensor) -> Tensor:
+        """[R, 3] background colour: random while training (if configured), grey otherwise."""
+        if self.training and self.config.background_color == "random":
+            return torch.rand(num_rays, 3, dtype=like.dtype, device=like.device)
+        return like.new_full((num_rays, 3), 0.5)
+
+    # ------------------------------------------------------------------------------ loss, metrics
+    @staticmethod
+    def _target_rgb(batch: Dict[str, Tensor], like: Tensor) -> Tensor:
+        image = batch["image"].to(like.device)
+        return image[..., :3].to(like.dtype)
+
+    def get_metrics_dict(self, outputs: Dict[str, Tensor], batch: Dict[str, Tensor]) -> Dict[str, Tensor]:
+        """Training metrics: PSNR of the batch, samples evaluated per ray, occupied grid fraction."""
+        target = self._target_rgb(batch, outputs["rgb"])
+        mse = torch.mean((outputs["rgb"].detach() - target) ** 2)
+        return {
+            "psnr": -10.0 * torch.log10(mse.clamp_min(1e-10)),
+            "samples_per_ray": outputs["samples_per_ray"].mean(),
+            "occupied_fraction": torch.tensor(self.occupancy.occupied_fraction()),
+        }
+
+    def get_loss_dict(self, outputs: Dict[str, Tensor], batch: Dict[str, Tensor], metrics_dict: Optional[Dict[str, Tensor]] = None) -> Dict[str, Tensor]:
+        """Photometric MSE."""
+        target = self._target_rgb(batch, outputs["rgb"])
+        return {"rgb_loss": torch.mean((outputs["rgb"] - target) ** 2)}
+
+    def get_image_metrics_and_images(
+        self, outputs: Dict[str, Tensor], batch: Dict[str, Tensor]
+    ) -> Tuple[Dict[str, float], Dict[str, Tensor]]:
+        """PSNR, SSIM (and LPIPS when its weights are on disk) of a full rendered image [H, W, 3]."""
+        predicted = outputs["rgb"].clamp(0.0, 1.0)
+        target = self._target_rgb(batch, predicted)
+        metrics = self.image_metrics(predicted, target)
+        images = {"img": torch.cat([target, predicted], dim=1), "depth": outputs["depth"], "accumulation": outputs["accumulation"]}
+        return metrics, images
