@@ -17,7 +17,7 @@ from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.plugins.types import MethodSpecification
 
 from scalar_nerfstudio.engine.schedulers import WarmupExponentialDecaySchedulerConfig
-from scalar_nerfstudio.engine.trainer import ScalarTrainerConfig
+from scalar_nerfstudio.engine.trainer import ScalarBlockTrainerConfig, ScalarTrainerConfig
 from scalar_nerfstudio.models.scalar_model import ScalarModelConfig
 from scalar_nerfstudio.pipeline import ScalarPipelineConfig
 
@@ -37,9 +37,9 @@ def _adam(lr: float, eps: float = 1e-15) -> dict:
     return {"optimizer": FusedAdamOptimizerConfig(lr=lr, eps=eps), "scheduler": WarmupExponentialDecaySchedulerConfig()}
 
 
-def global_trainer_config(method_name: str = "scalar-nerf") -> ScalarTrainerConfig:
+def global_trainer_config(method_name: str = "scalar-nerf", config_class: Type[ScalarTrainerConfig] = ScalarTrainerConfig) -> ScalarTrainerConfig:
     """Trainer config of the global model (paper Sec. 4 hyper-parameters, CPU-sized run length)."""
-    return ScalarTrainerConfig(
+    return config_class(
         method_name=method_name,
         max_num_iterations=2000,
         steps_per_save=250,
@@ -68,6 +68,6 @@ scalar_nerf = MethodSpecification(
 )
 
 scalar_nerf_block = MethodSpecification(
-    config=global_trainer_config("scalar-nerf-block"),
-    description="SCALAR-NeRF: train one block from a trained global run (not built yet: see issue 4).",
+    config=global_trainer_config("scalar-nerf-block", ScalarBlockTrainerConfig),
+    description="SCALAR-NeRF: train one block from a trained global run (not built yet; refuses to run).",
 )

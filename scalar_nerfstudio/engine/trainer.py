@@ -89,6 +89,20 @@ class ScalarTrainer(Trainer):
             self.config.load_step = step
         super()._load_checkpoint()
 
+    def train(self) -> None:
+        """Train up to ``max_num_iterations`` steps in total.
+
+        nerfstudio trains ``max_num_iterations`` *more* steps after a resume, which would run the
+        learning-rate schedule past its end; here a resumed run trains only the remaining steps.
+        """
+        total = self.config.max_num_iterations
+        self.step = max(self._start_step - 1, 0)
+        self.config.max_num_iterations = max(total - self._start_step, 0)
+        try:
+            super().train()
+        finally:
+            self.config.max_num_iterations = total
+
     def save_checkpoint(self, step: int) -> None:
         """Save model, optimizers, schedulers and scaler atomically; keep only the latest if configured."""
         self.checkpoint_dir.mkdir(parents=True, exist_ok=True)
@@ -106,3 +120,20 @@ class ScalarTrainer(Trainer):
             for old in self.checkpoint_dir.glob("step-*.ckpt"):
                 if old != ckpt_path:
                     old.unlink()
+
+
+@dataclass
+class ScalarBlockTrainerConfig(ScalarTrainerConfig):
+    """``scalar-nerf-block``: train one block from a trained global run (not built yet)."""
+
+    block: int = 0
+    """Index of the block (as listed in the global run's blocks.json) to train."""
+    global_run: Optional[Path] = None
+    """config.yml of the trained global run whose decoder and block split the block starts from."""
+
+    def set_timestamp(self) -> None:
+        """Called by ``ns-train`` before anything is written: refuse instead of pretending to train."""
+        raise SystemExit(
+            "scalar-nerf-block: training a single block on its own is not built yet. "
+            "Train the global model with `ns-train scalar-nerf --data SCENE`; block training follows in a later release."
+        )

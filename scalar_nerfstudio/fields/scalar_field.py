@@ -56,10 +56,11 @@ class Decoder(nn.Module):
     """
 
     def __init__(
-        self, in_dim: int, hidden_dim: int, geo_feat_dim: int, direction_dim: int, appearance_dim: int
+        self, in_dim: int, hidden_dim: int, geo_feat_dim: int, direction_dim: int, appearance_dim: int, density_bias: float
     ) -> None:
         super().__init__()
         self.geo_feat_dim = geo_feat_dim
+        self.density_bias = density_bias
         self.density_mlp = nn.Sequential(
             nn.Linear(in_dim, hidden_dim), nn.ReLU(inplace=True), nn.Linear(hidden_dim, 1 + geo_feat_dim)
         )
@@ -74,7 +75,7 @@ class Decoder(nn.Module):
     def density(self, features: Tensor) -> tuple[Tensor, Tensor]:
         """[N, in_dim] encoder features -> ([N] density in 1/world unit, [N, geo_feat_dim] features)."""
         out = self.density_mlp(features)
-        density = trunc_exp(out[:, 0] - 1.0)
+        density = trunc_exp(out[:, 0] + self.density_bias)
         return density, out[:, 1:]
 
     def colour(self, geo_features: Tensor, encoded_directions: Tensor, appearance: Tensor) -> Tensor:
@@ -107,6 +108,9 @@ class ScalarFieldConfig(InstantiateConfig):
     """Per-image appearance embedding size (NeRF-W style)."""
     sh_degree: int = 4
     """Spherical-harmonics levels of the view-direction encoding (levels^2 outputs)."""
+    density_bias: float = -4.0
+    """Added before the density activation: a fresh field is nearly transparent (exp(-4) ~ 0.02 per
+    unit) instead of a haze that explains training views and generalises badly."""
 
 
 class ScalarField(nn.Module):
@@ -135,6 +139,7 @@ class ScalarField(nn.Module):
             geo_feat_dim=config.geo_feat_dim,
             direction_dim=self.direction_encoding.get_out_dim(),
             appearance_dim=config.appearance_dim,
+            density_bias=config.density_bias,
         )
         self.appearance = nn.Embedding(max(num_images, 1), config.appearance_dim)
         nn.init.normal_(self.appearance.weight, std=0.01)

@@ -54,11 +54,13 @@ class OccupancyGrid(nn.Module):
     Args:
         resolution: G, cells per axis.
         update_every: steps between updates.
-        warmup_steps: before this step every update re-evaluates all cells; later, a random
-            quarter of the cells per update.
+        warmup_steps: until this step every update re-evaluates all cells and no cell is marked
+            empty (surfaces must form before empty space is decided); later, a random quarter of
+            the cells per update.
         ema_decay: exponential moving average decay of a cell's density estimate.
-        density_threshold: a cell is occupied when its density estimate exceeds
-            min(threshold, mean estimate) (1 / world unit).
+        opacity_threshold: a cell is occupied when the opacity of its density estimate over the
+            cell's world-space size, 1 - exp(-density * size), exceeds min(threshold, mean opacity)
+            (as nerfacc's grid does; the mean keeps a grid of a barely trained field from emptying).
     """
 
     def __init__(
@@ -67,18 +69,27 @@ class OccupancyGrid(nn.Module):
         update_every: int = 16,
         warmup_steps: int = 256,
         ema_decay: float = 0.95,
-        density_threshold: float = 0.01,
+        opacity_threshold: float = 0.01,
     ) -> None:
         super().__init__()
         self.resolution = resolution
         self.update_every = update_every
         self.warmup_steps = warmup_steps
         self.ema_decay = ema_decay
-        self.density_threshold = density_threshold
+        self.opacity_threshold = opacity_threshold
         num_cells = resolution**3
         # A fresh grid is all occupied: nothing is skipped until the field has been looked at.
         self.register_buffer("density_ema", torch.full((num_cells,), float("inf")))
         self.register_buffer("occupied", torch.ones(num_cells, dtype=torch.bool))
+        self.register_buffer("cell_sizes", self._world_cell_sizes(resolution), persistent=False)
+
+    @staticmethod
+    def _world_cell_sizes(resolution: int) -> Tensor:
+        """[G^3] world-space edge length of each cell (cells of the contracted cube grow as r^2 outside r=1)."""
+        centres = (torch.stack(torch.meshgrid(*[torch.arange(resolution)] * 3, indexing="ij"), dim=-1).reshape(-1, 3) + 0.5) / resolution
+        contracted_radius = torch.linalg.vector_norm((centres - 0.5) * 4.0, dim=-1).clamp(max=2.0 - 1e-3)
+        world_radius = torch.where(contracted_radius <= 1.0, torch.ones_like(contracted_radius), 1.0 / (2.0 - contracted_radius))
+        return (4.0 / resolution) * world_radius**2
 
     def cell_indices(self, unit_positions: Tensor) -> Tensor:
         """[M, 3] positions in the contracted unit cube -> [M] flat cell indices (always in range)."""
@@ -117,7 +128,7 @@ class OccupancyGrid(nn.Module):
         previous = self.density_ema[cells]
         decayed = torch.where(torch.isinf(previous), densities, previous * self.ema_decay)
         self.density_ema[cells] = torch.maximum(decayed, densities)
-        finite = self.density_ema[torch.isfinite(self.density_ema)]
-        mean_density = float(finite.mean()) if finite.numel() > 0 else 0.0
-        threshold = min(self.density_threshold, mean_density)
-        self.occupied.copy_(self.density_ema > threshold)
+        opacities = 1.0 - torch.exp(-(self.density_ema * self.cell_sizes).clamp(max=50.0))
+        threshold = min(self.opacity_threshold, float(opacities.mean()))
+        if step >= self.warmup_steps:
+            self.occupied.copy_(opacities > threshold)

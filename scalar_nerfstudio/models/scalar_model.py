@@ -26,12 +26,13 @@ from scalar_nerfstudio.fields.scalar_field import ScalarField, ScalarFieldConfig
 from scalar_nerfstudio.metrics import ImageMetrics
 from scalar_nerfstudio.model_components.rendering import (
     composite,
+    distortion_loss,
     render_depth,
     render_weights,
     weights_from_alphas,
     alphas_from_densities,
 )
-from scalar_nerfstudio.model_components.sampling import OccupancyGrid, sample_intervals
+from scalar_nerfstudio.model_components.sampling import OccupancyGrid, lin_disp_spacing, sample_intervals
 
 _CHUNK = 1 << 16
 
@@ -55,10 +56,12 @@ class ScalarModelConfig(ModelConfig):
     """Steps between occupancy-grid updates."""
     occupancy_warmup_steps: int = 256
     """Steps during which every occupancy update re-evaluates all cells."""
-    occupancy_density_threshold: float = 0.01
-    """A cell is empty when its density stays below min(this, mean density)."""
+    occupancy_opacity_threshold: float = 0.01
+    """A cell is empty when its opacity (density over the cell's size) stays below min(this, mean)."""
     transmittance_threshold: float = 1e-3
     """Samples behind the point where a ray's transmittance drops below this are not evaluated."""
+    distortion_loss_mult: float = 0.002
+    """Weight of Mip-NeRF 360's distortion loss (0 disables it)."""
     background_color: Literal["random", "grey"] = "random"
     """Training background (random teaches opaque geometry); evaluation always uses grey."""
 
@@ -78,7 +81,7 @@ class ScalarModel(Model):
             resolution=self.config.occupancy_resolution,
             update_every=self.config.occupancy_update_every,
             warmup_steps=self.config.occupancy_warmup_steps,
-            density_threshold=self.config.occupancy_density_threshold,
+            opacity_threshold=self.config.occupancy_opacity_threshold,
         )
         self.image_metrics = ImageMetrics()
 
@@ -144,8 +147,12 @@ class ScalarModel(Model):
         background = self._background(num_rays, origins)
         rgb = composite(weights, colours) + (1.0 - accumulation) * background
         depth = render_depth(weights, t_mid, fars)
+        outputs = {"rgb": rgb, "depth": depth, "accumulation": accumulation}
+        if self.training and self.config.distortion_loss_mult > 0:
+            outputs["distortion"] = distortion_loss(weights, lin_disp_spacing(t_starts), lin_disp_spacing(t_ends))
         samples_per_ray = torch.bincount(ray_ids, minlength=num_rays).to(rgb.dtype)[:, None]
-        return {"rgb": rgb, "depth": depth, "accumulation": accumulation, "samples_per_ray": samples_per_ray}
+        outputs["samples_per_ray"] = samples_per_ray
+        return outputs
 
     @torch.no_grad()
     def _visible_samples(self, unit_positions: Tensor, deltas: Tensor) -> Tensor:
@@ -184,9 +191,12 @@ class ScalarModel(Model):
         }
 
     def get_loss_dict(self, outputs: Dict[str, Tensor], batch: Dict[str, Tensor], metrics_dict: Optional[Dict[str, Tensor]] = None) -> Dict[str, Tensor]:
-        """Photometric MSE."""
+        """Photometric MSE (+ distortion loss while training)."""
         target = self._target_rgb(batch, outputs["rgb"])
-        return {"rgb_loss": torch.mean((outputs["rgb"] - target) ** 2)}
+        losses = {"rgb_loss": torch.mean((outputs["rgb"] - target) ** 2)}
+        if "distortion" in outputs:
+            losses["distortion_loss"] = self.config.distortion_loss_mult * outputs["distortion"].mean()
+        return losses
 
     def get_image_metrics_and_images(
         self, outputs: Dict[str, Tensor], batch: Dict[str, Tensor]

@@ -1,0 +1,149 @@
+"""Training benchmark: scalar-nerf (global model) vs nerfstudio's nerfacto (torch implementation).
+
+Each method trains in its own process for the same wall-clock budget on the same scene and
+split, then renders the eval views. Printed and written as JSON: steps, training rays/s,
+held-out PSNR / SSIM, render time per image, and the mean-training-image baseline.
+
+nerfacto builds LPIPS (which downloads AlexNet weights) when it is constructed; offline that
+dies, so this benchmark replaces LPIPS by a stub for nerfacto and reports no LPIPS for it.
+
+    python benchmarks/bench_training.py --data ../shared/data/castle-P30 --minutes 12 --json docs/bench_training.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Dict, List
+
+RUNNER = r'''
+import json, sys, time
+from pathlib import Path
+import torch
+
+method, data, downscale, seconds, steps, out = sys.argv[1], Path(sys.argv[2]), int(sys.argv[3]), float(sys.argv[4]), int(sys.argv[5]), Path(sys.argv[6])
+if method == "nerfacto":
+    import torchmetrics.image.lpip as lpip
+
+    class NoLPIPS(torch.nn.Module):  # offline: nerfacto's LPIPS would download AlexNet weights
+        def forward(self, *args, **kwargs):
+            return torch.tensor(float("nan"))
+
+    lpip.LearnedPerceptualImagePatchSimilarity = NoLPIPS
+from nerfstudio.configs.method_configs import all_methods
+from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
+
+config = all_methods[method]
+config.pipeline.datamanager.data = data
+config.pipeline.datamanager.dataparser = NerfstudioDataParserConfig(downscale_factor=downscale, eval_mode="interval", eval_interval=8)
+config.machine.device_type = "cpu"
+config.mixed_precision = False
+config.max_num_iterations = steps
+config.vis = "tensorboard"
+config.steps_per_eval_batch = config.steps_per_eval_image = config.steps_per_eval_all_images = 10**9
+config.steps_per_save = 10**9
+config.output_dir = out.parent / "runs"
+config.logging.local_writer.enable = False
+if method == "nerfacto":
+    config.pipeline.model.implementation = "torch"
+    config.pipeline.datamanager.train_num_rays_per_batch = 4096
+config.set_timestamp()
+trainer = config.setup(local_rank=0, world_size=1)
+trainer.setup()
+
+iteration = trainer.train_iteration
+clock = {"train_seconds": 0.0, "steps": 0, "start": None}
+
+def timed_iteration(step):  # wall clock from the first iteration on, callbacks (e.g. grid updates) included
+    clock["start"] = clock["start"] or time.perf_counter()
+    result = iteration(step)
+    clock["train_seconds"] = time.perf_counter() - clock["start"]
+    clock["steps"] += 1
+    if clock["train_seconds"] >= seconds:
+        trainer.stop_training = True
+    return result
+
+trainer.train_iteration = timed_iteration
+trainer.train()
+pipeline = trainer.pipeline
+pipeline.eval()
+start = time.perf_counter()
+metrics = pipeline.get_average_eval_image_metrics()
+num_eval = len(pipeline.datamanager.fixed_indices_eval_dataloader)
+render_ms = 1000.0 * (time.perf_counter() - start) / max(num_eval, 1)
+rays_per_step = pipeline.datamanager.get_train_rays_per_batch()
+result = {
+    "method": method,
+    "steps": clock["steps"],
+    "train_seconds": clock["train_seconds"],
+    "train_rays_per_sec": clock["steps"] * rays_per_step / max(clock["train_seconds"], 1e-9),
+    "psnr": metrics["psnr"],
+    "ssim": metrics["ssim"],
+    "render_ms_per_image": render_ms,
+    "eval_images": num_eval,
+    "threads": torch.get_num_threads(),
+}
+if method != "nerfacto" and "lpips" in metrics:
+    result["lpips"] = metrics["lpips"]
+out.write_text(json.dumps(result))
+'''
+
+
+def mean_image_baseline(data: Path, downscale: int) -> float:
+    """Held-out PSNR of the mean training image (what a model that learned nothing scores)."""
+    import torch
+    from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
+    from nerfstudio.data.datasets.base_dataset import InputDataset
+
+    parser = NerfstudioDataParserConfig(data=data, downscale_factor=downscale, eval_mode="interval", eval_interval=8).setup()
+    train, test = InputDataset(parser.get_dataparser_outputs("train")), InputDataset(parser.get_dataparser_outputs("test"))
+    mean = torch.stack([train[i]["image"][..., :3] for i in range(len(train))]).mean(0)
+    scores = [float(-10 * torch.log10(torch.mean((test[i]["image"][..., :3] - mean) ** 2))) for i in range(len(test))]
+    return sum(scores) / len(scores)
+
+
+def run_method(method: str, args: argparse.Namespace, workdir: Path) -> Dict:
+    out = workdir / f"{method}.json"
+    steps = args.scalar_steps if method == "scalar-nerf" else 100000
+    command = [sys.executable, "-c", RUNNER, method, str(args.data), str(args.downscale), str(args.minutes * 60), str(steps), str(out)]
+    print(f"[{time.strftime('%H:%M:%S')}] training {method} for {args.minutes} min ...", flush=True)
+    subprocess.run(command, check=True, stdout=subprocess.DEVNULL if not args.verbose else None)
+    return json.loads(out.read_text())
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", type=Path, default=Path("../shared/data/castle-P30"))
+    parser.add_argument("--downscale", type=int, default=4)
+    parser.add_argument("--minutes", type=float, default=12.0, help="training wall-clock budget per method")
+    parser.add_argument("--scalar-steps", type=int, default=800, help="scalar-nerf run length (sets its lr schedule); the time budget may stop it earlier")
+    parser.add_argument("--methods", nargs="+", default=["scalar-nerf", "nerfacto"])
+    parser.add_argument("--workdir", type=Path, default=Path("outputs/bench_training"))
+    parser.add_argument("--json", type=Path, default=None, help="also write the results here")
+    parser.add_argument("--verbose", action="store_true")
+    args = parser.parse_args()
+    args.workdir.mkdir(parents=True, exist_ok=True)
+    results: List[Dict] = [run_method(m, args, args.workdir) for m in args.methods]
+    baseline = mean_image_baseline(args.data, args.downscale)
+
+    print(f"\nscene {args.data.name}, downscale {args.downscale}, eval every 8th image, budget {args.minutes} min, mean-image baseline {baseline:.2f} dB")
+    print(f"{'method':<14}{'steps':>7}{'train s':>9}{'rays/s':>10}{'PSNR':>8}{'SSIM':>7}{'render ms/img':>15}")
+    for r in results:
+        print(f"{r['method']:<14}{r['steps']:>7}{r['train_seconds']:>9.0f}{r['train_rays_per_sec']:>10.0f}{r['psnr']:>8.2f}{r['ssim']:>7.3f}{r['render_ms_per_image']:>15.0f}")
+    by_name = {r["method"]: r for r in results}
+    if {"scalar-nerf", "nerfacto"} <= by_name.keys():
+        ours, peer = by_name["scalar-nerf"], by_name["nerfacto"]
+        print(f"scalar-nerf / nerfacto: {ours['train_rays_per_sec'] / peer['train_rays_per_sec']:.1f}x rays/s, "
+              f"{ours['psnr'] - peer['psnr']:+.2f} dB PSNR, {peer['render_ms_per_image'] / ours['render_ms_per_image']:.1f}x faster render")
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps({"scene": str(args.data.name), "downscale": args.downscale, "minutes": args.minutes,
+                                         "mean_image_psnr": baseline, "results": results}, indent=2))
+
+
+if __name__ == "__main__":
+    main()

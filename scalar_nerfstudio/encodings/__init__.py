@@ -1,0 +1,27 @@
+"""Encodings: the multi-resolution hash grid (C++/OpenMP on CPU, vectorised torch elsewhere)."""
+
+from scalar_nerfstudio.encodings._cpp import extension_available as cpp_extension_available
+from scalar_nerfstudio.encodings._cpp import extension_error as cpp_extension_error
+from scalar_nerfstudio.encodings.hash_grid import (
+    GridLayout,
+    HashGridEncoding,
+    grid_resolutions,
+    hash_encoding_cpp,
+    hash_encoding_torch,
+    level_corners,
+    level_row_counts,
+    reference_hash_encoding,
+)
+
+__all__ = [
+    "GridLayout",
+    "HashGridEncoding",
+    "cpp_extension_available",
+    "cpp_extension_error",
+    "grid_resolutions",
+    "hash_encoding_cpp",
+    "hash_encoding_torch",
+    "level_corners",
+    "level_row_counts",
+    "reference_hash_encoding",
+]

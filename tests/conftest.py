@@ -1,0 +1,64 @@
+"""Shared fixtures: the real scenes beside the repo and one short trained run reused by several tests."""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+from pathlib import Path
+from typing import List
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_DATA = REPO.parent / "shared" / "data"
+CASTLE = SHARED_DATA / "castle-P30"
+
+# A short run that fits the suite's budget on 2 cores (see README "Tests").
+TRAIN_STEPS = int(os.environ.get("SCALAR_TEST_TRAIN_STEPS", "200"))
+
+
+def free_port() -> int:
+    """A TCP port that is free right now on localhost."""
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def ns_train_command(data: Path, output_dir: Path, *extra: str, method: str = "scalar-nerf") -> List[str]:
+    """``ns-train METHOD`` as a user runs it, with a private viewer port, ending when training ends."""
+    return [
+        sys.executable, "-m", "nerfstudio.scripts.train", method,
+        "--data", str(data),
+        "--output-dir", str(output_dir),
+        "--viewer.websocket-port", str(free_port()),
+        "--viewer.quit-on-train-completion", "True",
+        "--logging.local-writer.enable", "False",
+        *extra,
+    ]
+
+
+def run_dirs(output_dir: Path, method: str = "scalar-nerf") -> List[Path]:
+    """Run folders (``.../METHOD/TIMESTAMP``) under ``output_dir``."""
+    return sorted(p.parent for p in output_dir.glob(f"*/{method}/*/config.yml"))
+
+
+def castle_args() -> List[str]:
+    return ["nerfstudio-data", "--downscale-factor", "4"]
+
+
+requires_castle = pytest.mark.skipif(not CASTLE.is_dir(), reason=f"castle-P30 not found at {CASTLE}")
+
+
+@pytest.fixture(scope="session")
+def trained_castle_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Train the global model on castle-P30 (downscale 4) for TRAIN_STEPS steps; returns the run folder."""
+    if not CASTLE.is_dir():
+        pytest.skip(f"castle-P30 not found at {CASTLE}")
+    output_dir = tmp_path_factory.mktemp("castle_run")
+    command = ns_train_command(CASTLE, output_dir, "--max-num-iterations", str(TRAIN_STEPS), "--steps-per-save", str(TRAIN_STEPS), *castle_args())
+    result = subprocess.run(command, capture_output=True, text=True, timeout=1200)
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    (run,) = run_dirs(output_dir)
+    return run

@@ -1,0 +1,115 @@
+"""Checkpoints are atomic; a resumed run continues at the saved step with the same state."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+import torch
+import yaml
+
+from conftest import CASTLE, TRAIN_STEPS, castle_args, free_port, ns_train_command, requires_castle, run_dirs
+from scalar_nerfstudio.engine.trainer import PARTIAL_SUFFIX, atomic_torch_save, latest_checkpoint_step
+
+
+def test_failed_write_keeps_previous_checkpoint(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    checkpoint = tmp_path / "run" / "nerfstudio_models" / "step-000000010.ckpt"
+    checkpoint.parent.mkdir(parents=True)
+    atomic_torch_save({"step": 10, "w": torch.ones(3)}, checkpoint)
+
+    def crash(obj, handle, *args, **kwargs):
+        handle.write(b"half a checkpoint")
+        raise OSError("disk full")
+
+    monkeypatch.setattr(torch, "save", crash)
+    with pytest.raises(OSError):
+        atomic_torch_save({"step": 10, "w": torch.zeros(3)}, checkpoint)
+    assert torch.load(checkpoint)["w"].tolist() == [1.0, 1.0, 1.0]
+    assert os.listdir(checkpoint.parent) == ["step-000000010.ckpt"]
+
+
+def test_process_killed_while_writing_leaves_no_checkpoint(tmp_path: Path) -> None:
+    checkpoint = tmp_path / "run" / "nerfstudio_models" / "step-000000001.ckpt"
+    checkpoint.parent.mkdir(parents=True)
+    writer = subprocess.Popen([sys.executable, "-c", textwrap.dedent(f"""
+        import torch
+        from pathlib import Path
+        from scalar_nerfstudio.engine.trainer import atomic_torch_save
+        atomic_torch_save({{"big": torch.ones(400_000_000, dtype=torch.uint8)}}, Path({str(checkpoint)!r}))
+        """)])
+    partial = checkpoint.parent.parent / f".{checkpoint.stem}{PARTIAL_SUFFIX}"
+    deadline = time.time() + 60
+    while not (partial.exists() and partial.stat().st_size > 0) and time.time() < deadline and writer.poll() is None:
+        time.sleep(0.01)
+    writer.send_signal(signal.SIGKILL)
+    writer.wait()
+    assert partial.exists(), "the writer finished before it could be killed mid-write"
+    assert not checkpoint.exists()
+    assert latest_checkpoint_step(checkpoint.parent) is None
+
+
+def _copy_run(run: Path, destination: Path) -> Path:
+    """Copy a run folder to ``destination`` (keeping OUTPUT/EXPERIMENT/METHOD/TIMESTAMP)."""
+    copied = destination / run.parent.parent.name / run.parent.name / run.name
+    shutil.copytree(run, copied)
+    return copied
+
+
+@pytest.mark.slow
+@requires_castle
+def test_resume_continues_at_saved_step_with_same_state(trained_castle_run: Path, tmp_path: Path) -> None:
+    run = _copy_run(trained_castle_run, tmp_path)
+    config = yaml.load((run / "config.yml").read_text(), Loader=yaml.Loader)
+    config.output_dir = tmp_path
+    config.load_dir = run / "nerfstudio_models"
+    config.max_num_iterations = TRAIN_STEPS + 5
+    config.viewer.websocket_port = free_port()
+    config.viewer.quit_on_train_completion = True
+    saved = torch.load(run / "nerfstudio_models" / f"step-{TRAIN_STEPS - 1:09d}.ckpt", map_location="cpu")
+
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    assert trainer._start_step == TRAIN_STEPS
+    for name, value in trainer.pipeline.state_dict().items():
+        assert torch.equal(value.cpu(), saved["pipeline"][name]), name
+    encoder_state = trainer.optimizers.optimizers["encoder"].state_dict()["state"][0]
+    assert torch.equal(encoder_state["exp_avg"], saved["optimizers"]["encoder"]["state"][0]["exp_avg"])
+    trainer.train()
+    assert latest_checkpoint_step(run / "nerfstudio_models") == TRAIN_STEPS + 4
+
+
+@pytest.mark.slow
+@requires_castle
+def test_sigkilled_training_resumes_in_the_same_run(tmp_path: Path) -> None:
+    command = ns_train_command(CASTLE, tmp_path, "--max-num-iterations", "100000", "--steps-per-save", "3", *castle_args())
+    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 600
+    step = None
+    while time.time() < deadline and process.poll() is None:
+        runs = run_dirs(tmp_path)
+        step = latest_checkpoint_step(runs[0] / "nerfstudio_models") if runs else None
+        if step is not None and step >= 6:
+            break
+        time.sleep(0.05)
+    process.send_signal(signal.SIGKILL)
+    process.wait()
+    assert step is not None and step >= 6, "no checkpoint was written before the deadline"
+    (run,) = run_dirs(tmp_path)
+    checkpoints = run / "nerfstudio_models"
+    killed_at = latest_checkpoint_step(checkpoints)
+    for name in os.listdir(checkpoints):  # whatever survived the kill is complete and loadable
+        assert name.startswith("step-") and name.endswith(".ckpt")
+        assert torch.load(checkpoints / name, map_location="cpu")["step"] == int(name[5:14])
+
+    resume = ns_train_command(CASTLE, tmp_path, "--load-dir", str(checkpoints), "--max-num-iterations", str(killed_at + 4), *castle_args())
+    result = subprocess.run(resume, capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    assert run_dirs(tmp_path) == [run], "the resumed run must continue in the same folder"
+    assert latest_checkpoint_step(checkpoints) == killed_at + 3

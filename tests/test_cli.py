@@ -1,0 +1,85 @@
+"""The commands a user runs: ns-train --help, ns-eval, ns-viewer, and the README's demo command."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+import pytest
+
+from conftest import free_port, run_dirs
+from scalar_nerfstudio.metrics import alexnet_weights_path
+
+
+@pytest.mark.parametrize("method", ["scalar-nerf", "scalar-nerf-block"])
+def test_ns_train_help(method: str) -> None:
+    result = subprocess.run([sys.executable, "-m", "nerfstudio.scripts.train", method, "--help"], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert "--pipeline.model.field.log2-hashmap-size" in result.stdout
+    assert "nerfstudio-data" in result.stdout
+
+
+@pytest.mark.slow
+def test_ns_eval_reports_psnr_ssim_without_downloading(trained_castle_run: Path, tmp_path: Path) -> None:
+    output = tmp_path / "eval.json"
+    result = subprocess.run(
+        [sys.executable, "-m", "nerfstudio.scripts.eval", "--load-config", str(trained_castle_run / "config.yml"), "--output-path", str(output)],
+        capture_output=True, text=True, timeout=600,
+    )
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    metrics = json.loads(output.read_text())["results"]
+    assert 5.0 < metrics["psnr"] < 60.0 and 0.0 < metrics["ssim"] <= 1.0
+    weights = alexnet_weights_path()
+    if weights is None or not weights.is_file():
+        assert "lpips" not in metrics
+        assert "LPIPS skipped" in result.stdout + result.stderr
+
+
+@pytest.mark.slow
+def test_ns_viewer_serves_a_trained_run(trained_castle_run: Path) -> None:
+    port = free_port()
+    viewer = subprocess.Popen(
+        [sys.executable, "-m", "nerfstudio.scripts.viewer.run_viewer", "--load-config", str(trained_castle_run / "config.yml"), "--viewer.websocket-port", str(port)],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )
+    try:
+        deadline = time.time() + 300
+        page = None
+        while time.time() < deadline and viewer.poll() is None:
+            try:
+                with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=5) as response:
+                    page = response.read().decode("utf-8", "replace")
+                break
+            except OSError:
+                time.sleep(1.0)
+        assert viewer.poll() is None, viewer.stdout.read()[-3000:] if viewer.stdout else ""
+        assert page is not None and "<html" in page.lower()
+    finally:
+        viewer.terminate()
+        viewer.wait(timeout=60)
+
+
+@pytest.mark.slow
+def test_demo_command_trains_on_the_builtin_scene(tmp_path: Path) -> None:
+    result = subprocess.run(
+        ["scalar-nerf-demo", "--scene-dir", str(tmp_path / "scene"), "--output-dir", str(tmp_path / "outputs"), "--max-num-iterations", "30",
+         "--", "--viewer.websocket-port", str(free_port()), "--logging.local-writer.enable", "False"],
+        capture_output=True, text=True, timeout=900, cwd=tmp_path,
+    )
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    (run,) = run_dirs(tmp_path / "outputs")
+    assert (run / "nerfstudio_models" / "step-000000029.ckpt").is_file()
+
+
+def test_block_method_refuses_instead_of_pretending(tmp_path: Path) -> None:
+    result = subprocess.run(
+        [sys.executable, "-m", "nerfstudio.scripts.train", "scalar-nerf-block", "--data", str(tmp_path), "--output-dir", str(tmp_path / "out")],
+        capture_output=True, text=True, timeout=300,
+    )
+    assert result.returncode != 0
+    assert "not built yet" in result.stdout + result.stderr
+    assert not (tmp_path / "out").exists()

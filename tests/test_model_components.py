@@ -1,0 +1,102 @@
+"""Contraction, sampling, occupancy grid, volume rendering and the lr schedule on normal and extreme inputs."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from scalar_nerfstudio.engine.schedulers import warmup_exponential_decay_factor
+from scalar_nerfstudio.fields.scalar_field import contract, contract_to_unit_cube
+from scalar_nerfstudio.model_components.rendering import render_depth, render_weights
+from scalar_nerfstudio.model_components.sampling import OccupancyGrid, lin_disp_spacing, lin_disp_spacing_inverse, sample_intervals
+
+
+def test_contraction_matches_mipnerf360_and_stays_in_the_ball() -> None:
+    inside = torch.tensor([[0.0, 0.0, 0.0], [0.3, -0.4, 0.5]])
+    assert torch.equal(contract(inside), inside)
+    x = torch.tensor([[3.0, 4.0, 0.0]])  # |x| = 5
+    assert torch.allclose(contract(x), (2.0 - 1.0 / 5.0) * x / 5.0)
+    eps = 1e-6
+    extreme = torch.tensor([
+        [1.0 - eps, 0.0, 0.0], [1.0 + eps, 0.0, 0.0], [1e6, 0.0, 0.0], [1e30, -1e30, 1e30],
+        [float("inf"), 0.0, 0.0], [-float("inf"), float("inf"), 0.0], [float("nan"), 1.0, 0.0], [3e38, 3e38, 3e38],
+    ])
+    out = contract(extreme)
+    assert torch.isfinite(out).all()
+    assert (torch.linalg.vector_norm(out, dim=-1) <= 2.0 + 1e-6).all()
+    assert torch.allclose(out[2], torch.tensor([2.0, 0.0, 0.0]), atol=1e-5)
+    assert torch.allclose(out[4], torch.tensor([2.0, 0.0, 0.0]), atol=1e-5)
+    unit = contract_to_unit_cube(extreme)
+    assert ((unit >= 0) & (unit <= 1)).all()
+
+
+def test_contraction_is_continuous_at_the_unit_sphere() -> None:
+    direction = torch.nn.functional.normalize(torch.randn(100, 3), dim=-1)
+    below, above = contract(direction * (1 - 1e-5)), contract(direction * (1 + 1e-5))
+    assert (below - above).abs().max() < 1e-4
+
+
+def test_spacing_round_trip_and_sorted_intervals() -> None:
+    t = torch.tensor([0.0, 0.5, 1.0, 2.0, 100.0, 1e4])
+    assert torch.allclose(lin_disp_spacing_inverse(lin_disp_spacing(t)), t, rtol=1e-3)
+    nears, fars = torch.full((5, 1), 0.05), torch.full((5, 1), 1000.0)
+    starts, ends = sample_intervals(nears, fars, 32, jitter=True)
+    assert starts.shape == (5, 32)
+    assert (ends >= starts).all() and (starts[:, 1:] >= starts[:, :-1]).all()
+    assert (starts >= 0.05 - 1e-6).all() and (ends <= 1000.0 + 1e-3).all()
+
+
+@pytest.mark.parametrize("density", [0.0, 1e-8, 1.0, 1e6, float("inf"), float("nan")])
+def test_volume_rendering_weights_stay_valid(density: float) -> None:
+    deltas = torch.tensor([[0.0, 1e-9, 0.1, 1.0, 1e4]]).repeat(3, 1)
+    densities = torch.full_like(deltas, density).requires_grad_(True)
+    weights, transmittance = render_weights(densities, deltas)
+    assert torch.isfinite(weights).all() and (weights >= 0).all() and (weights <= 1).all()
+    assert (weights.sum(-1) <= 1 + 1e-6).all()
+    assert (transmittance[:, 1:] <= transmittance[:, :-1] + 1e-7).all()
+    weights.sum().backward()
+    assert torch.isfinite(densities.grad).all()
+
+
+def test_empty_ray_renders_background_depth_far() -> None:
+    weights, _ = render_weights(torch.zeros(2, 4), torch.ones(2, 4))
+    assert torch.equal(weights, torch.zeros(2, 4))
+    depth = render_depth(weights, torch.arange(4.0).repeat(2, 1), torch.full((2, 1), 50.0))
+    assert torch.equal(depth, torch.full((2, 1), 50.0))
+
+
+def test_opaque_surface_gets_all_the_weight_and_its_depth() -> None:
+    densities = torch.tensor([[0.0, 0.0, 1e6, 0.0]])
+    weights, _ = render_weights(densities, torch.ones(1, 4))
+    assert torch.allclose(weights, torch.tensor([[0.0, 0.0, 1.0, 0.0]]))
+    depth = render_depth(weights, torch.tensor([[1.0, 2.0, 3.0, 4.0]]), torch.tensor([[10.0]]))
+    assert torch.allclose(depth, torch.tensor([[3.0]]))
+
+
+def test_occupancy_grid_marks_dense_cells_and_indexes_in_range() -> None:
+    grid = OccupancyGrid(resolution=8, update_every=1, warmup_steps=1)
+    assert grid.occupied.all()  # nothing is skipped before the first update
+
+    def sphere_density(unit: torch.Tensor) -> torch.Tensor:
+        return torch.where(torch.linalg.vector_norm(unit - 0.5, dim=-1) < 0.2, 100.0, 0.0)
+
+    grid.update(0, sphere_density)
+    assert grid.occupied.all()  # warm-up: densities are estimated everywhere, nothing is marked empty yet
+    grid.update(1, sphere_density)
+    centre, corner = torch.tensor([[0.5, 0.5, 0.5]]), torch.tensor([[0.02, 0.02, 0.02]])
+    assert grid.is_occupied(centre).item() and not grid.is_occupied(corner).item()
+    assert 0.0 < grid.occupied_fraction() < 0.2
+    wild = torch.tensor([[-1.0, 2.0, float("nan")], [1.0, 1.0, 1.0], [0.0, 0.0, 0.0]])
+    indices = grid.cell_indices(wild)
+    assert ((indices >= 0) & (indices < 8**3)).all()
+
+
+def test_schedule_warms_up_linearly_then_decays_to_a_tenth() -> None:
+    factors = [warmup_exponential_decay_factor(s, 1000, 0.025, 0.1) for s in range(1001)]
+    assert factors[0] == pytest.approx(1 / 25) and factors[12] == pytest.approx(12 / 25)
+    assert factors[25] == pytest.approx(1.0)
+    assert factors[1000] == pytest.approx(0.1)
+    assert all(isinstance(f, float) and math.isfinite(f) for f in factors)
+    assert all(a >= b for a, b in zip(factors[25:], factors[26:]))
