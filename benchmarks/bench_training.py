@@ -30,6 +30,9 @@ if method == "nerfacto":
     import torchmetrics.image.lpip as lpip
 
     class NoLPIPS(torch.nn.Module):  # offline: nerfacto's LPIPS would download AlexNet weights
+        def __init__(self, *args, **kwargs):
+            super().__init__()
+
         def forward(self, *args, **kwargs):
             return torch.tensor(float("nan"))
 
