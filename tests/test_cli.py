@@ -83,3 +83,13 @@ def test_block_method_refuses_instead_of_pretending(tmp_path: Path) -> None:
     assert result.returncode != 0
     assert "not built yet" in result.stdout + result.stderr
     assert not (tmp_path / "out").exists()
+
+
+def test_ci_runs_the_readme_test_command() -> None:
+    repo = Path(__file__).resolve().parents[1]
+    script = (repo / ".ci" / "run").read_text()
+    extraction = script.split("test_command=$(", 1)[1].split(")\n", 1)[0]
+    extracted = subprocess.run(["bash", "-c", extraction], capture_output=True, text=True, cwd=repo, check=True).stdout.strip()
+    readme = (repo / "README.md").read_text()
+    assert "python -m pytest" in extracted
+    assert extracted in readme.split("<!-- test command -->", 1)[1].split("```", 2)[1]
