@@ -23,14 +23,12 @@ from torch import Tensor
 from torch.nn import Parameter
 
 from scalar_nerfstudio.fields.scalar_field import ScalarField, ScalarFieldConfig, contract_to_unit_cube
-from scalar_nerfstudio.metrics import ImageMetrics
+from scalar_nerfstudio.metrics import ImageMetrics, psnr
 from scalar_nerfstudio.model_components.rendering import (
     composite,
     distortion_loss,
     render_depth,
     render_weights,
-    weights_from_alphas,
-    alphas_from_densities,
 )
 from scalar_nerfstudio.model_components.sampling import OccupancyGrid, lin_disp_spacing, sample_intervals
 
@@ -164,7 +162,7 @@ class ScalarModel(Model):
             return candidate_ids
         densities = torch.zeros(num_rays * num_samples, device=deltas.device)
         densities[candidate_ids] = self._density_no_grad(unit_positions[candidate_ids])
-        _, transmittance = weights_from_alphas(alphas_from_densities(densities.reshape(num_rays, num_samples), deltas))
+        _, transmittance = render_weights(densities.reshape(num_rays, num_samples), deltas)
         visible = occupied & (transmittance.reshape(-1) > self.config.transmittance_threshold)
         return torch.nonzero(visible).squeeze(-1)
 
@@ -183,9 +181,8 @@ class ScalarModel(Model):
     def get_metrics_dict(self, outputs: Dict[str, Tensor], batch: Dict[str, Tensor]) -> Dict[str, Tensor]:
         """Training metrics: PSNR of the batch, samples evaluated per ray, occupied grid fraction."""
         target = self._target_rgb(batch, outputs["rgb"])
-        mse = torch.mean((outputs["rgb"].detach() - target) ** 2)
         return {
-            "psnr": -10.0 * torch.log10(mse.clamp_min(1e-10)),
+            "psnr": psnr(outputs["rgb"].detach(), target),
             "samples_per_ray": outputs["samples_per_ray"].mean(),
             "occupied_fraction": torch.tensor(self.occupancy.occupied_fraction()),
         }
