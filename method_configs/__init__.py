@@ -11,14 +11,14 @@ from typing import Type
 
 import torch
 from nerfstudio.configs.base_config import MachineConfig, ViewerConfig
-from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManagerConfig
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.plugins.types import MethodSpecification
 
 from scalar_nerfstudio.engine.schedulers import WarmupExponentialDecaySchedulerConfig
 from scalar_nerfstudio.engine.trainer import ScalarBlockTrainerConfig, ScalarTrainerConfig
-from scalar_nerfstudio.models.scalar_model import ScalarModelConfig
+from scalar_nerfstudio.data.datamanager import ScalarDataManagerConfig
+from scalar_nerfstudio.models.scene_model import ScalarSceneModelConfig
 from scalar_nerfstudio.pipeline import ScalarPipelineConfig
 
 CUDA = torch.cuda.is_available()
@@ -38,10 +38,10 @@ def _adam(lr: float, eps: float = 1e-15) -> dict:
 
 
 def global_trainer_config(method_name: str = "scalar-nerf", config_class: Type[ScalarTrainerConfig] = ScalarTrainerConfig) -> ScalarTrainerConfig:
-    """Trainer config of the global model (paper Sec. 4 hyper-parameters, CPU-sized run length)."""
+    """Trainer config: global phase, then the blocks (paper Sec. 4 hyper-parameters, CPU-sized phases)."""
     return config_class(
         method_name=method_name,
-        max_num_iterations=2000,
+        max_num_iterations=0,
         steps_per_save=250,
         steps_per_eval_batch=500,
         steps_per_eval_image=500,
@@ -49,14 +49,21 @@ def global_trainer_config(method_name: str = "scalar-nerf", config_class: Type[S
         mixed_precision=CUDA,
         machine=MachineConfig(device_type="cuda" if CUDA else "cpu"),
         pipeline=ScalarPipelineConfig(
-            datamanager=VanillaDataManagerConfig(
+            datamanager=ScalarDataManagerConfig(
                 dataparser=NerfstudioDataParserConfig(eval_mode="interval", eval_interval=8),
                 train_num_rays_per_batch=4096,
                 eval_num_rays_per_batch=4096,
             ),
-            model=ScalarModelConfig(eval_num_rays_per_chunk=1 << 14),
+            model=ScalarSceneModelConfig(eval_num_rays_per_chunk=1 << 14),
         ),
-        optimizers={"encoder": _adam(1e-3), "decoder": _adam(1e-3), "appearance": _adam(1e-3)},
+        # Templates: a block's encoder/appearance use "encoder"/"appearance"; its fine-tuned decoder
+        # "block_decoder" (the paper's 5e-5). Each schedule spans the phase its group trains in.
+        optimizers={
+            "encoder": _adam(1e-3),
+            "decoder": _adam(1e-3),
+            "appearance": _adam(1e-3),
+            "block_decoder": _adam(5e-5),
+        },
         viewer=ViewerConfig(num_rays_per_chunk=1 << 14),
         vis="viewer",
     )
@@ -64,10 +71,10 @@ def global_trainer_config(method_name: str = "scalar-nerf", config_class: Type[S
 
 scalar_nerf = MethodSpecification(
     config=global_trainer_config(),
-    description="SCALAR-NeRF: coarse global hash-grid model (then blocks + global-guided fusion).",
+    description="SCALAR-NeRF: coarse global hash-grid model, then K overlapping blocks, fused by the global model.",
 )
 
 scalar_nerf_block = MethodSpecification(
     config=global_trainer_config("scalar-nerf-block", ScalarBlockTrainerConfig),
-    description="SCALAR-NeRF: train one block from a trained global run (not built yet; refuses to run).",
+    description="SCALAR-NeRF: train one block of a trained scalar-nerf run (--global-run RUN --block K), in its own folder.",
 )

@@ -75,16 +75,6 @@ def test_demo_command_trains_on_the_builtin_scene(tmp_path: Path) -> None:
     assert (run / "nerfstudio_models" / "step-000000029.ckpt").is_file()
 
 
-def test_block_method_refuses_instead_of_pretending(tmp_path: Path) -> None:
-    result = subprocess.run(
-        [sys.executable, "-m", "nerfstudio.scripts.train", "scalar-nerf-block", "--data", str(tmp_path), "--output-dir", str(tmp_path / "out")],
-        capture_output=True, text=True, timeout=300,
-    )
-    assert result.returncode != 0
-    assert "not built yet" in result.stdout + result.stderr
-    assert not (tmp_path / "out").exists()
-
-
 def test_ci_runs_the_readme_test_command() -> None:
     repo = Path(__file__).resolve().parents[1]
     script = (repo / ".ci" / "run").read_text()

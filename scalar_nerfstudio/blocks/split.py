@@ -255,6 +255,7 @@ def split_cameras(
     aabb_scale: Sequence[float] = (1.2, 1.2, 1.2),
     seed: int = 0,
     min_images_per_block: int = 1,
+    min_overlap_images: int = 0,
 ) -> BlockSplit:
     """Split training images into overlapping blocks (Alg. 1).
 
@@ -265,6 +266,10 @@ def split_cameras(
         aabb_scale: Per-axis scale ``(s_x, s_y, s_z)``, each ``>= 1``, of each group's AABB.
         seed: KMeans random seed.
         min_images_per_block: Minimum number of images a final block must hold.
+        min_overlap_images: With any scale > 1, a block whose scaled AABB takes in fewer images of
+            other groups than this is grown further, uniformly about its centre, until it does
+            (sparse layouts, e.g. a ring of cameras, leave gaps wider than 10 % of a block). 0 is
+            Alg. 1 verbatim; scale 1 never grows a block.
 
     Returns:
         The :class:`BlockSplit`; every image is in at least one block.
@@ -282,12 +287,30 @@ def split_cameras(
     blocks = []
     for index, group in enumerate(groups):
         lo, hi = _scaled_aabb(centres[group], scale_arr, thin, layout_lo, layout_hi, flat)
+        if min_overlap_images > 0 and (scale_arr > 1.0).any() and len(groups) > 1:
+            lo, hi = _grow_to_overlap(centres, group, lo, hi, min_overlap_images)
         inside = np.all((centres >= lo) & (centres <= hi), axis=1)
         inside[group] = True
         members = tuple(int(i) for i in np.flatnonzero(inside))
         blocks.append(Block(index, members, _to_vec3(lo), _to_vec3(hi), _to_vec3((lo + hi) / 2.0)))
     _check_min_size(blocks, min_images_per_block, int(num_blocks), centres.shape[0])
     return BlockSplit(blocks=tuple(blocks), aabb_scale=scale, seed=seed)
+
+
+def _grow_to_overlap(
+    centres: np.ndarray, group: np.ndarray, lo: np.ndarray, hi: np.ndarray, min_overlap: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Grow the box [lo, hi] about its centre until it holds ``min_overlap`` cameras not in ``group``."""
+    others = np.setdiff1d(np.arange(centres.shape[0]), group)
+    if others.size == 0:
+        return lo, hi
+    centre, half = (lo + hi) / 2.0, np.maximum((hi - lo) / 2.0, 1e-12)
+    factors = np.max(np.abs(centres[others] - centre) / half, axis=1)  # growth that takes each camera in
+    needed = np.sort(factors)[min(min_overlap, factors.size) - 1]
+    if needed <= 1.0:
+        return lo, hi
+    grown = half * needed * (1.0 + 1e-9)
+    return np.minimum(centre - grown, lo), np.maximum(centre + grown, hi)
 
 
 def _check_min_size(blocks: Sequence[Block], min_images: int, num_blocks: int, num_images: int) -> None:

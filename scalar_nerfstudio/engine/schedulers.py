@@ -26,13 +26,16 @@ class WarmupExponentialDecaySchedulerConfig(SchedulerConfig):
     final_factor: float = 0.1
     """Learning rate at the end of the run, relative to the initial one."""
     max_steps: Optional[int] = None
-    """Length of the run; None means the trainer's ``max_num_iterations``."""
+    """Length of the schedule in steps; None: filled in by the trainer (the length of the phase the
+    parameter group trains in)."""
+    start_step: int = 0
+    """Global step at which the schedule starts (a block's phase starts after the global one)."""
 
 
 def warmup_exponential_decay_factor(step: int, max_steps: int, warmup_fraction: float, final_factor: float) -> float:
     """Multiplier of the initial learning rate at ``step`` (a Python float in (0, 1])."""
     warmup_steps = max(int(round(warmup_fraction * max_steps)), 0)
-    if step < warmup_steps:
+    if warmup_steps > 0 and step < warmup_steps:
         return max(step, 1) / warmup_steps
     decay_steps = max(max_steps - warmup_steps, 1)
     progress = min(max((step - warmup_steps) / decay_steps, 0.0), 1.0)
@@ -48,6 +51,7 @@ class WarmupExponentialDecayScheduler(Scheduler):
         if self.config.max_steps is None:
             raise ValueError("WarmupExponentialDecaySchedulerConfig.max_steps is unset; the trainer fills it in.")
         max_steps, warmup, final = self.config.max_steps, self.config.warmup_fraction, self.config.final_factor
+        start = self.config.start_step
         return lr_scheduler.LambdaLR(
-            optimizer, lr_lambda=lambda step: warmup_exponential_decay_factor(step, max_steps, warmup, final)
+            optimizer, lr_lambda=lambda step: warmup_exponential_decay_factor(step - start, max_steps, warmup, final)
         )

@@ -2,16 +2,20 @@
 
 from __future__ import annotations
 
+import json
 import os
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Dict, Literal, Optional, Type
 
 import torch
+import yaml
+from nerfstudio.engine.optimizers import Optimizers
 from nerfstudio.engine.trainer import Trainer, TrainerConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 
+from scalar_nerfstudio.blocks.split import format_split_table, save_blocks_json
 from scalar_nerfstudio.engine.schedulers import WarmupExponentialDecaySchedulerConfig
 
 CHECKPOINT_PATTERN = re.compile(r"^step-(\d{9})\.ckpt$")
@@ -45,6 +49,8 @@ class ScalarTrainerConfig(TrainerConfig):
     """nerfstudio's TrainerConfig; ``--load-dir RUN/nerfstudio_models`` resumes *in* RUN."""
 
     _target: Type = field(default_factory=lambda: ScalarTrainer)
+    max_num_iterations: int = 0
+    """Stop after this many steps in total; 0: train every phase (global steps + blocks x block steps)."""
 
     def set_timestamp(self) -> None:
         """Resume into the run folder that ``load_dir`` belongs to, instead of starting a new one."""
@@ -69,15 +75,53 @@ class ScalarTrainer(Trainer):
     config: ScalarTrainerConfig
 
     def setup(self, test_mode: Literal["test", "val", "inference"] = "val") -> None:
-        self._scale_schedules_to_run()
         super().setup(test_mode=test_mode)
+        pipeline = self._pipeline()
+        total = getattr(pipeline, "total_steps", None)
+        if total is not None and self.config.max_num_iterations <= 0:
+            self.config.max_num_iterations = total
+        if hasattr(pipeline, "split") and test_mode == "val":
+            self._report_split(pipeline)
 
-    def _scale_schedules_to_run(self) -> None:
-        for group, settings in self.config.optimizers.items():
+    def _pipeline(self):
+        return self.pipeline.module if hasattr(self.pipeline, "module") else self.pipeline
+
+    def _report_split(self, pipeline) -> None:
+        """Save the block split as blocks.json in the run folder and print it with the phases."""
+        save_blocks_json(pipeline.split, self.base_dir / "blocks.json", pipeline.image_names)
+        CONSOLE.print(format_split_table(pipeline.split, pipeline.image_names))
+        phases = ", ".join(f"{p.name}: steps {p.start_step}-{p.end_step - 1}" for p in pipeline.phases if p.num_steps > 0)
+        CONSOLE.print(f"phases: {phases}; split saved to {self.base_dir / 'blocks.json'}")
+
+    def setup_optimizers(self) -> Optimizers:
+        """One optimiser per parameter group, from the template in ``optimizers`` that fits the group.
+
+        A block's groups (``block{k}.encoder`` ...) use the ``encoder`` / ``appearance`` templates and
+        ``block_decoder`` for a fine-tuned decoder; each schedule spans the phase its group trains in.
+        """
+        pipeline = self._pipeline()
+        param_groups = pipeline.get_param_groups()
+        phases = pipeline.param_group_phases() if hasattr(pipeline, "param_group_phases") else {}
+        config: Dict[str, Any] = {}
+        for group in param_groups:
+            template, phase = phases.get(group, (group, None))
+            if template not in self.config.optimizers:
+                raise KeyError(f"no optimizer settings for parameter group {group!r} (looked for --optimizers.{template})")
+            settings = dict(self.config.optimizers[template])
             scheduler = settings.get("scheduler")
-            if isinstance(scheduler, WarmupExponentialDecaySchedulerConfig) and scheduler.max_steps is None:
-                scheduler.max_steps = self.config.max_num_iterations
-                CONSOLE.log(f"lr schedule of '{group}' spans the run: {scheduler.max_steps} steps")
+            if isinstance(scheduler, WarmupExponentialDecaySchedulerConfig):
+                start, length = (phase.start_step, phase.num_steps) if phase is not None else (0, self.config.max_num_iterations)
+                settings["scheduler"] = replace(scheduler, start_step=start, max_steps=scheduler.max_steps or max(length, 1))
+            config[group] = settings
+        return Optimizers(config, param_groups)
+
+    def train_iteration(self, step: int):
+        """One step; a checkpoint is also written at the end of every phase."""
+        result = super().train_iteration(step)
+        phase_at = getattr(self._pipeline(), "phase_at", None)
+        if phase_at is not None and step + 1 == phase_at(step).end_step and step + 1 < self._total_steps:
+            self.save_checkpoint(step)
+        return result
 
     def _load_checkpoint(self) -> None:
         """Resume from the newest complete checkpoint; ignores anything that is not ``step-N.ckpt``."""
@@ -96,6 +140,7 @@ class ScalarTrainer(Trainer):
         learning-rate schedule past its end; here a resumed run trains only the remaining steps.
         """
         total = self.config.max_num_iterations
+        self._total_steps = total
         self.step = max(self._start_step - 1, 0)
         self.config.max_num_iterations = max(total - self._start_step, 0)
         try:
@@ -122,18 +167,73 @@ class ScalarTrainer(Trainer):
                     old.unlink()
 
 
+def _global_run_config_path(global_run: Path) -> Path:
+    """``config.yml`` of a run given as the file itself or its folder."""
+    path = Path(global_run)
+    return path if path.suffix in (".yml", ".yaml") else path / "config.yml"
+
+
 @dataclass
 class ScalarBlockTrainerConfig(ScalarTrainerConfig):
-    """``scalar-nerf-block``: train one block from a trained global run (not built yet)."""
+    """``scalar-nerf-block``: train one block of a trained ``scalar-nerf`` run, in a folder of its own.
+
+    The scene, the split (the global run's blocks.json) and the model hyper-parameters come from the
+    global run; the global model's weights are read from its newest checkpoint. Nothing is written
+    into the global run, so several blocks can train at once (other processes or machines).
+    """
 
     block: int = 0
     """Index of the block (as listed in the global run's blocks.json) to train."""
     global_run: Optional[Path] = None
-    """config.yml of the trained global run whose decoder and block split the block starts from."""
+    """The trained scalar-nerf run to start from: its folder (or its config.yml)."""
 
     def set_timestamp(self) -> None:
-        """Called by ``ns-train`` before anything is written: refuse instead of pretending to train."""
-        raise SystemExit(
-            "scalar-nerf-block: training a single block on its own is not built yet. "
-            "Train the global model with `ns-train scalar-nerf --data SCENE`; block training follows in a later release."
-        )
+        """Called by ``ns-train`` before anything is written: adopt the global run's scene and split.
+
+        The run folder is named ``TIMESTAMP-blockK``, so blocks started in the same second (several
+        processes at once) never share a folder.
+        """
+        self._adopt_global_run()
+        fresh = self.timestamp == "{timestamp}" and self._resumed_run_dir() is None
+        super().set_timestamp()
+        if fresh:
+            self.timestamp = f"{self.timestamp}-block{self.block}"
+
+    def _adopt_global_run(self) -> None:
+        if self.global_run is None:
+            raise SystemExit("scalar-nerf-block: --global-run is required (the folder of a trained `ns-train scalar-nerf` run).")
+        config_path = _global_run_config_path(self.global_run)
+        if not config_path.is_file():
+            raise SystemExit(f"scalar-nerf-block: --global-run {self.global_run}: no config.yml there.")
+        run_dir = config_path.parent
+        global_config = yaml.load(config_path.read_text(), Loader=yaml.Loader)
+        global_pipeline = getattr(global_config, "pipeline", None)
+        if not hasattr(global_pipeline, "global_steps"):
+            raise SystemExit(f"scalar-nerf-block: {config_path} is not a scalar-nerf run.")
+        blocks_json = run_dir / "blocks.json"
+        if not blocks_json.is_file():
+            raise SystemExit(f"scalar-nerf-block: {blocks_json} is missing; was {run_dir} trained with scalar-nerf?")
+        checkpoint_dir = run_dir / global_config.relative_model_dir
+        step = latest_checkpoint_step(checkpoint_dir)
+        if step is None or step + 1 < global_pipeline.global_steps:
+            done = 0 if step is None else step + 1
+            raise SystemExit(
+                f"scalar-nerf-block: the global phase of {run_dir} is not finished "
+                f"({done} of {global_pipeline.global_steps} steps checkpointed); train it first."
+            )
+        num_blocks = len(json.loads(blocks_json.read_text())["blocks"])
+        if not 0 <= self.block < num_blocks:
+            raise SystemExit(f"scalar-nerf-block: --block {self.block} does not exist; {blocks_json} has blocks 0..{num_blocks - 1}.")
+        pipeline = self.pipeline
+        pipeline.datamanager.data = global_pipeline.datamanager.data
+        pipeline.datamanager.dataparser = global_pipeline.datamanager.dataparser
+        pipeline.model = global_pipeline.model
+        pipeline.num_blocks, pipeline.aabb_scale = global_pipeline.num_blocks, global_pipeline.aabb_scale
+        pipeline.split_seed = global_pipeline.split_seed
+        pipeline.min_overlap_images = global_pipeline.min_overlap_images
+        pipeline.only_block = self.block
+        pipeline.blocks_json = blocks_json.resolve()
+        pipeline.global_checkpoint = (checkpoint_dir / f"step-{step:09d}.ckpt").resolve()
+        self.data = global_pipeline.datamanager.data
+        if self.experiment_name is None:
+            self.experiment_name = global_config.experiment_name

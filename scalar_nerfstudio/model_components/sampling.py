@@ -61,6 +61,8 @@ class OccupancyGrid(nn.Module):
         opacity_threshold: a cell is occupied when the opacity of its density estimate over the
             cell's world-space size, 1 - exp(-density * size), exceeds min(threshold, mean opacity)
             (as nerfacc's grid does; the mean keeps a grid of a barely trained field from emptying).
+        world_scale: world length of one unit of the region frame the grid's cube contracts
+            (a block's radius), so cell sizes and the opacity threshold are in world units.
     """
 
     def __init__(
@@ -70,6 +72,7 @@ class OccupancyGrid(nn.Module):
         warmup_steps: int = 256,
         ema_decay: float = 0.95,
         opacity_threshold: float = 0.01,
+        world_scale: float = 1.0,
     ) -> None:
         super().__init__()
         self.resolution = resolution
@@ -81,7 +84,7 @@ class OccupancyGrid(nn.Module):
         # A fresh grid is all occupied: nothing is skipped until the field has been looked at.
         self.register_buffer("density_ema", torch.full((num_cells,), float("inf")))
         self.register_buffer("occupied", torch.ones(num_cells, dtype=torch.bool))
-        self.register_buffer("cell_sizes", self._world_cell_sizes(resolution), persistent=False)
+        self.register_buffer("cell_sizes", world_scale * self._world_cell_sizes(resolution), persistent=False)
 
     @staticmethod
     def _world_cell_sizes(resolution: int) -> Tensor:

@@ -65,7 +65,14 @@ class ScalarModelConfig(ModelConfig):
 
 
 class ScalarModel(Model):
-    """Hash-grid NeRF with an occupancy grid, a shared-decoder field and per-image appearance."""
+    """Hash-grid NeRF with an occupancy grid, a shared-decoder field and per-image appearance.
+
+    Keyword args (besides nerfstudio's ``scene_box`` / ``num_train_data``):
+        region_centre: [3] world point mapped to the origin before contraction (default 0).
+        region_radius: world distance mapped to 1 before contraction (default 1). A block's local
+            model gets its scaled AABB's centre and half-diagonal, so its hash grid spends its
+            resolution on the block; the global model keeps the dataparser's normalised frame.
+    """
 
     config: ScalarModelConfig
 
@@ -74,12 +81,19 @@ class ScalarModel(Model):
         self.config.enable_collider = True
         self.config.collider_params = {"near_plane": self.config.near_plane, "far_plane": self.config.far_plane}
         super().populate_modules()
+        centre = torch.as_tensor(self.kwargs.get("region_centre", (0.0, 0.0, 0.0)), dtype=torch.float32).reshape(3)
+        radius = float(self.kwargs.get("region_radius", 1.0))
+        if not (torch.isfinite(centre).all() and radius > 0 and radius < float("inf")):
+            raise ValueError(f"region centre {centre.tolist()} / radius {radius} must be finite with radius > 0")
+        self.register_buffer("region_centre", centre, persistent=False)
+        self.region_radius = radius
         self.field: ScalarField = self.config.field.setup(num_images=self.num_train_data)
         self.occupancy = OccupancyGrid(
             resolution=self.config.occupancy_resolution,
             update_every=self.config.occupancy_update_every,
             warmup_steps=self.config.occupancy_warmup_steps,
             opacity_threshold=self.config.occupancy_opacity_threshold,
+            world_scale=radius,
         )
         self.image_metrics = ImageMetrics()
 
@@ -126,8 +140,8 @@ class ScalarModel(Model):
         t_mid = (t_starts + t_ends) / 2.0
         deltas = t_ends - t_starts
         num_samples = t_mid.shape[1]
-        positions = origins[:, None, :] + directions[:, None, :] * t_mid[..., None]  # [R, S, 3]
-        unit_positions = contract_to_unit_cube(positions.reshape(-1, 3))  # [R*S, 3]
+        positions = origins[:, None, :] + directions[:, None, :] * t_mid[..., None]  # [R, S, 3] world
+        unit_positions = contract_to_unit_cube(self._to_region(positions.reshape(-1, 3)))  # [R*S, 3]
 
         sample_ids = self._visible_samples(unit_positions, deltas)  # [M] flat indices into R*S
         ray_ids = torch.div(sample_ids, num_samples, rounding_mode="floor")
@@ -151,6 +165,12 @@ class ScalarModel(Model):
         samples_per_ray = torch.bincount(ray_ids, minlength=num_rays).to(rgb.dtype)[:, None]
         outputs["samples_per_ray"] = samples_per_ray
         return outputs
+
+    def _to_region(self, positions: Tensor) -> Tensor:
+        """[N, 3] world positions -> [N, 3] in the model's region frame (centre 0, radius 1)."""
+        if self.region_radius == 1.0 and not bool(self.region_centre.any()):
+            return positions
+        return (positions - self.region_centre.to(positions.dtype)) / self.region_radius
 
     @torch.no_grad()
     def _visible_samples(self, unit_positions: Tensor, deltas: Tensor) -> Tensor:

@@ -1,0 +1,193 @@
+"""The model nerfstudio's trainer, viewer, ``ns-eval`` and ``ns-render`` see: global + blocks + fusion.
+
+:class:`ScalarSceneModel` holds one :class:`ScalarModel` for the coarse global model and one per
+block (the same class: a block differs only by its region, its images and where its decoder came
+from). Training runs one of them at a time (the pipeline picks it by step); rendering renders the
+global model and the blocks that have started training, and fuses them per pixel.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Dict, List, Literal, Optional, Sequence, Tuple, Type
+
+import torch
+from nerfstudio.cameras.rays import RayBundle
+from nerfstudio.models.base_model import Model
+from torch import Tensor, nn
+from torch.nn import Parameter
+
+from scalar_nerfstudio.blocks.split import Block, BlockSplit
+from scalar_nerfstudio.fusion import ParsedFusionMode, fuse_outputs, parse_fusion_mode
+from scalar_nerfstudio.metrics import psnr
+from scalar_nerfstudio.models.scalar_model import ScalarModel, ScalarModelConfig
+
+DecoderMode = Literal["finetune", "frozen", "independent"]
+#: A block's region radius never drops below this (normalised scene units; cameras span [-1, 1]).
+MIN_REGION_RADIUS = 0.05
+
+
+@dataclass
+class ScalarSceneModelConfig(ScalarModelConfig):
+    """Global model + one local model per block, fused per pixel (paper Sec. 3.4)."""
+
+    _target: Type = field(default_factory=lambda: ScalarSceneModel)
+    fusion: str = "global"
+    """How block renders are fused: global (closest to the global model's colour, the paper's), idw
+    (Block-NeRF's inverse distance weighting), nearest, global-only, or block:<k>."""
+    idw_gamma: float = 1.0
+    """Exponent of inverse distance weighting (``idw`` fusion)."""
+
+
+def block_region(block: Block) -> Tuple[Tuple[float, float, float], float]:
+    """Centre and radius of a block's local model frame: its scaled AABB's centre and largest half-extent.
+
+    The global model maps the camera layout's largest half-extent to 1 (nerfstudio's pose
+    normalisation); a block does the same with its own scaled AABB, so its hash grid resolves the
+    block as finely as the global grid resolves the whole scene.
+    """
+    half_extent = max((hi - lo) / 2.0 for lo, hi in zip(block.aabb_min, block.aabb_max))
+    return block.centre, max(half_extent, MIN_REGION_RADIUS)
+
+
+class ScalarSceneModel(Model):
+    """Global model, block models and their fusion.
+
+    Keyword args (from the pipeline):
+        split: the :class:`BlockSplit` of the training images (indices into them).
+        block_ids: which blocks this model holds (all of them, or one in a ``scalar-nerf-block`` run).
+        block_num_images: images per held block (sizes its appearance embedding).
+        decoder_mode: ``finetune`` / ``frozen`` (start from the global decoder) or ``independent``.
+    """
+
+    config: ScalarSceneModelConfig
+
+    def populate_modules(self) -> None:
+        """Build the global model and the block models."""
+        self.config.enable_collider = True
+        self.config.collider_params = {"near_plane": self.config.near_plane, "far_plane": self.config.far_plane}
+        super().populate_modules()
+        self.split: BlockSplit = self.kwargs["split"]
+        self.block_ids: Tuple[int, ...] = tuple(self.kwargs.get("block_ids", range(self.split.num_blocks)))
+        self.decoder_mode: DecoderMode = self.kwargs.get("decoder_mode", "finetune")
+        if self.decoder_mode not in ("finetune", "frozen", "independent"):
+            raise ValueError(f"decoder_mode {self.decoder_mode!r}: expected finetune, frozen or independent")
+        num_images: Dict[int, int] = self.kwargs.get("block_num_images") or {
+            b.index: len(b.image_indices) for b in self.split.blocks
+        }
+        self.fusion_mode: ParsedFusionMode = parse_fusion_mode(self.config.fusion, self.split.num_blocks)
+        self.global_model = ScalarModel(config=self.config, scene_box=self.scene_box, num_train_data=self.num_train_data)
+        blocks = {}
+        for index in self.block_ids:
+            centre, radius = block_region(self.split.blocks[index])
+            blocks[str(index)] = ScalarModel(
+                config=self.config, scene_box=self.scene_box, num_train_data=num_images[index],
+                region_centre=centre, region_radius=radius,
+            )
+            if self.decoder_mode == "frozen":
+                blocks[str(index)].field.decoder.requires_grad_(False)
+        self.blocks = nn.ModuleDict(blocks)
+        # Which blocks have started training (their decoder was initialised); saved in checkpoints.
+        self.register_buffer("blocks_started", torch.zeros(self.split.num_blocks, dtype=torch.bool))
+        self.register_buffer(
+            "block_centres", torch.tensor([b.centre for b in self.split.blocks], dtype=torch.float32), persistent=False
+        )
+
+    # ------------------------------------------------------------------------------ phases
+    def phase_model(self, block: Optional[int]) -> ScalarModel:
+        """The model trained in a phase: the global model (block None) or block ``block``'s."""
+        if block is None:
+            return self.global_model
+        if str(block) not in self.blocks:
+            raise KeyError(f"block {block} is not held by this model (it holds {list(self.block_ids)})")
+        return self.blocks[str(block)]
+
+    @torch.no_grad()
+    def begin_block(self, block: int) -> None:
+        """Start block ``block``'s phase once: copy the global decoder into it (finetune / frozen)."""
+        if bool(self.blocks_started[block]):
+            return
+        if self.decoder_mode != "independent":
+            self.blocks[str(block)].field.decoder.load_state_dict(self.global_model.field.decoder.state_dict())
+        self.blocks_started[block] = True
+
+    def started_block_ids(self) -> List[int]:
+        """Blocks held here whose training has started (the ones rendering fuses)."""
+        return [b for b in self.block_ids if bool(self.blocks_started[b])]
+
+    def get_param_groups(self) -> Dict[str, List[Parameter]]:
+        """``encoder`` / ``decoder`` / ``appearance`` of the global model, ``block{k}.*`` of each block."""
+        groups = dict(self.global_model.get_param_groups())
+        for index in self.block_ids:
+            for name, params in self.blocks[str(index)].get_param_groups().items():
+                groups[f"block{index}.{name}"] = params
+        return groups
+
+    # --------------------------------------------------------------------------- rendering
+    def set_fusion(self, mode: str | ParsedFusionMode) -> None:
+        """Switch the fusion mode used by rendering (checked against the number of blocks)."""
+        self.fusion_mode = parse_fusion_mode(mode, self.split.num_blocks)
+
+    def get_outputs(self, ray_bundle: RayBundle) -> Dict[str, Tensor]:
+        """Fused ``rgb`` [R, 3], ``depth`` [R, 1], ``accumulation`` [R, 1], ``block_winner`` [R, 1].
+
+        ``block_winner`` is the index of the block that gave the pixel (-1: the global model).
+        """
+        mode = self.fusion_mode
+        global_outputs = self.global_model(ray_bundle)
+        block_ids = self._blocks_for(mode)
+        if not block_ids:
+            winner = torch.full_like(global_outputs["accumulation"], -1.0)
+            return {**global_outputs, "block_winner": winner}
+        block_outputs = [self.blocks[str(b)](ray_bundle) for b in block_ids]
+        if mode.kind == "block":
+            mode = ParsedFusionMode(kind="block", block_index=0)
+        fused = fuse_outputs(
+            mode, block_outputs, global_outputs,
+            camera_origin=ray_bundle.origins.reshape(-1, 3),
+            block_centres=self.block_centres[block_ids].to(ray_bundle.origins.device),
+            gamma=self.config.idw_gamma,
+        )
+        position_to_id = torch.tensor([-1, *block_ids], dtype=torch.float32, device=fused["rgb"].device)
+        fused["block_winner"] = position_to_id[fused["block_winner"].reshape(-1) + 1][:, None]
+        return fused
+
+    def _blocks_for(self, mode: ParsedFusionMode) -> List[int]:
+        """Blocks to render for ``mode`` (none for global-only or before any block has trained)."""
+        if mode.kind == "global-only":
+            return []
+        started = self.started_block_ids()
+        if mode.kind == "block":
+            return [mode.block_index] if mode.block_index in started else []
+        return started
+
+    # ------------------------------------------------------------------------- loss, metrics
+    def get_metrics_dict(self, outputs: Dict[str, Tensor], batch: Dict[str, Tensor]) -> Dict[str, Tensor]:
+        """PSNR of the fused render."""
+        return {"psnr": psnr(outputs["rgb"].detach(), self._target_rgb(batch, outputs["rgb"]))}
+
+    def get_loss_dict(
+        self, outputs: Dict[str, Tensor], batch: Dict[str, Tensor], metrics_dict: Optional[Dict[str, Tensor]] = None
+    ) -> Dict[str, Tensor]:
+        """Photometric MSE of the fused render (evaluation only; training uses the phase's model)."""
+        return {"rgb_loss": torch.mean((outputs["rgb"] - self._target_rgb(batch, outputs["rgb"])) ** 2)}
+
+    _target_rgb = staticmethod(ScalarModel._target_rgb)
+
+    def get_image_metrics_and_images(
+        self, outputs: Dict[str, Tensor], batch: Dict[str, Tensor]
+    ) -> Tuple[Dict[str, float], Dict[str, Tensor]]:
+        """PSNR, SSIM (LPIPS when available) of the fused image; images incl. the block winner map."""
+        metrics, images = self.global_model.get_image_metrics_and_images(outputs, batch)
+        if "block_winner" in outputs:
+            images["block_winner"] = outputs["block_winner"]
+        return metrics, images
+
+
+def held_blocks(split: BlockSplit, only_block: Optional[int]) -> Sequence[int]:
+    """Blocks a pipeline's model holds: all of ``split``'s, or just ``only_block``."""
+    if only_block is None:
+        return tuple(range(split.num_blocks))
+    if not 0 <= only_block < split.num_blocks:
+        raise ValueError(f"block {only_block} does not exist: the split has blocks 0..{split.num_blocks - 1}")
+    return (only_block,)

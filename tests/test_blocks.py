@@ -1,0 +1,294 @@
+"""Blocks end to end: the split in the run, phases, decoder modes, resume inside a block phase,
+``scalar-nerf-block`` processes running at the same time, and assembling their outputs."""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+import subprocess
+import sys
+from pathlib import Path
+from typing import Dict, List
+
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from conftest import CASTLE, free_port, ns_train_command, requires_castle, run_dirs
+from scalar_nerfstudio.blocks.split import load_blocks_json, split_cameras
+from scalar_nerfstudio.data.synthetic_scene import write_scene
+from scalar_nerfstudio.engine.trainer import latest_checkpoint_step
+from scalar_nerfstudio.method_configs import scalar_nerf
+
+GLOBAL_STEPS, BLOCK_STEPS, NUM_BLOCKS = 40, 15, 2
+TOTAL_STEPS = GLOBAL_STEPS + NUM_BLOCKS * BLOCK_STEPS
+# A small field and batch so that a whole run (global + 2 blocks) takes well under a minute.
+TINY = [
+    "--pipeline.model.field.log2-hashmap-size", "14",
+    "--pipeline.model.field.max-resolution", "256",
+    "--pipeline.model.num-samples-per-ray", "32",
+    "--pipeline.datamanager.train-num-rays-per-batch", "512",
+    "--pipeline.model.occupancy-warmup-steps", "8",
+    "--pipeline.num-blocks", str(NUM_BLOCKS),
+    "--pipeline.global-steps", str(GLOBAL_STEPS),
+    "--pipeline.block-steps", str(BLOCK_STEPS),
+]
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    folder = tmp_path_factory.mktemp("courtyard")
+    write_scene(folder, num_images=24, width=96, height=72)
+    return folder
+
+
+@pytest.fixture(scope="module")
+def full_run(scene: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """``ns-train scalar-nerf`` through the global phase and both blocks."""
+    output_dir = tmp_path_factory.mktemp("full_run")
+    result = subprocess.run(ns_train_command(scene, output_dir, *TINY), capture_output=True, text=True, timeout=900)
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    (run,) = run_dirs(output_dir)
+    assert "phases: global: steps 0-39, block 0: steps 40-54, block 1: steps 55-69" in " ".join(result.stdout.split())
+    return run
+
+
+def _pipeline_state(run: Path) -> Dict[str, torch.Tensor]:
+    step = latest_checkpoint_step(run / "nerfstudio_models")
+    assert step is not None
+    return torch.load(run / "nerfstudio_models" / f"step-{step:09d}.ckpt", map_location="cpu", weights_only=True)["pipeline"]
+
+
+def _decoder(state: Dict[str, torch.Tensor], model: str) -> Dict[str, torch.Tensor]:
+    prefix = f"_model.{model}.field.decoder."
+    return {k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix)}
+
+
+# ------------------------------------------------------------------------------ the split
+
+
+@requires_castle
+@pytest.mark.parametrize("num_blocks", [2, 3, 4])
+def test_castle_split_in_the_training_frame(num_blocks: int) -> None:
+    """In the frame the models train in: full cover, overlap exactly when s > 1, deterministic."""
+    from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
+
+    parser = NerfstudioDataParserConfig(data=CASTLE, eval_mode="interval", eval_interval=8).setup()
+    centres = parser.get_dataparser_outputs("train").cameras.camera_to_worlds[:, :3, 3].double().numpy()
+    defaults = scalar_nerf.config.pipeline
+    shared = {}
+    for scale in (1.0, 1.2):
+        split = split_cameras(centres, num_blocks, (scale,) * 3, seed=defaults.split_seed,
+                              min_images_per_block=defaults.min_images_per_block, min_overlap_images=defaults.min_overlap_images)
+        counts = np.bincount(np.concatenate([b.image_indices for b in split.blocks]), minlength=len(centres))
+        assert split.num_blocks == num_blocks and (counts >= 1).all()
+        shared[scale] = int((counts > 1).sum())
+        again = split_cameras(centres, num_blocks, (scale,) * 3, seed=defaults.split_seed,
+                              min_images_per_block=defaults.min_images_per_block, min_overlap_images=defaults.min_overlap_images)
+        assert again == split
+    assert shared[1.0] == 0 and shared[1.2] > 0
+
+
+# ------------------------------------------------------------------------ one full run
+
+
+@pytest.mark.slow
+def test_full_run_writes_split_and_trains_every_block(full_run: Path, scene: Path) -> None:
+    split, names = load_blocks_json(full_run / "blocks.json")
+    assert split.num_blocks == NUM_BLOCKS
+    assert sorted(set(i for b in split.blocks for i in b.image_indices)) == list(range(len(names)))
+    assert all(name.startswith("images/") and (scene / name).is_file() for name in names)
+    state = _pipeline_state(full_run)
+    assert state["_model.blocks_started"].tolist() == [True] * NUM_BLOCKS
+    global_decoder = _decoder(state, "global_model")
+    for block in range(NUM_BLOCKS):
+        block_decoder = _decoder(state, f"blocks.{block}")
+        # fine-tuned from the global decoder at lr 5e-5: moved, but only a little
+        difference = max(float((block_decoder[k] - global_decoder[k]).abs().max()) for k in global_decoder)
+        assert 0.0 < difference < 0.05
+        assert not torch.equal(state[f"_model.blocks.{block}.field.encoder.table"], state["_model.global_model.field.encoder.table"])
+
+
+@pytest.mark.slow
+def test_ns_eval_fuses_the_blocks(full_run: Path, tmp_path: Path) -> None:
+    output = tmp_path / "eval.json"
+    result = subprocess.run(
+        [sys.executable, "-m", "nerfstudio.scripts.eval", "--load-config", str(full_run / "config.yml"), "--output-path", str(output)],
+        capture_output=True, text=True, timeout=600,
+    )
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    assert 5.0 < json.loads(output.read_text())["results"]["psnr"] < 60.0
+
+
+# ------------------------------------------------------------- in-process runs (decoder modes)
+
+
+def _trainer(scene: Path, output_dir: Path, **pipeline: object):
+    """A scalar-nerf trainer on ``scene`` with the TINY settings, set up but not trained."""
+    config = copy.deepcopy(scalar_nerf.config)
+    config.data = scene
+    config.pipeline.datamanager.data = scene
+    config.output_dir = output_dir
+    config.vis = "tensorboard"
+    config.logging.local_writer.enable = False
+    config.steps_per_save = 1000
+    config.pipeline.model.field.log2_hashmap_size = 14
+    config.pipeline.model.field.max_resolution = 256
+    config.pipeline.model.num_samples_per_ray = 32
+    config.pipeline.model.occupancy_warmup_steps = 8
+    config.pipeline.datamanager.train_num_rays_per_batch = 512
+    config.pipeline.num_blocks = NUM_BLOCKS
+    config.pipeline.global_steps = 20
+    config.pipeline.block_steps = 8
+    for key, value in pipeline.items():
+        setattr(config.pipeline, key, value)
+    config.set_timestamp()
+    config.save_config()
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    return trainer
+
+
+def _decoder_params(model) -> List[torch.Tensor]:
+    return [p.detach().clone() for p in model.field.decoder.parameters()]
+
+
+@pytest.mark.parametrize("mode", ["frozen", "finetune", "independent"])
+def test_decoder_modes(scene: Path, tmp_path: Path, mode: str) -> None:
+    trainer = _trainer(scene, tmp_path, decoder_mode=mode)
+    model = trainer.pipeline.model
+    block = model.phase_model(0)
+    fresh = _decoder_params(block)
+    trainer.train()
+    global_decoder = _decoder_params(model.global_model)
+    trained = _decoder_params(block)
+    if mode == "frozen":
+        assert all(torch.equal(a, b) for a, b in zip(trained, global_decoder)), "a frozen decoder stays the global one"
+        assert all(not p.requires_grad for p in block.field.decoder.parameters())
+    elif mode == "finetune":
+        assert not all(torch.equal(a, b) for a, b in zip(trained, global_decoder)), "a fine-tuned decoder moves"
+        assert max(float((a - b).abs().max()) for a, b in zip(trained, global_decoder)) < 0.05
+    else:
+        assert not all(torch.equal(a, b) for a, b in zip(fresh, global_decoder)), "an independent decoder starts fresh"
+        assert max(float((a - b).abs().max()) for a, b in zip(trained, fresh)) > 0.0
+
+
+def test_block_starts_from_global_decoder_and_only_its_images(scene: Path, tmp_path: Path) -> None:
+    trainer = _trainer(scene, tmp_path, decoder_mode="finetune")
+    pipeline = trainer.pipeline
+    pipeline.model.begin_block(1)
+    global_decoder = _decoder_params(pipeline.model.global_model)
+    assert all(torch.equal(a, b) for a, b in zip(_decoder_params(pipeline.model.phase_model(1)), global_decoder))
+    phase = pipeline.phase_at(pipeline.phases[2].start_step)
+    assert phase.block == 1
+    datamanager = pipeline._train_datamanager(phase)
+    expected = [pipeline.datamanager.train_dataparser_outputs.image_filenames[i] for i in pipeline.split.blocks[1].image_indices]
+    assert list(datamanager.train_dataset.image_filenames) == expected
+    assert len(datamanager.train_dataset) < len(pipeline.datamanager.train_dataset)
+
+
+def test_run_stopped_in_a_block_phase_resumes_there(scene: Path, tmp_path: Path) -> None:
+    stop_at = 20 + 8 + 3  # inside block 1's phase (steps 28-35)
+    first = _trainer(scene, tmp_path)
+    first.config.max_num_iterations = stop_at
+    first.train()
+    run = first.base_dir
+    assert latest_checkpoint_step(run / "nerfstudio_models") == stop_at - 1
+    saved = torch.load(run / "nerfstudio_models" / f"step-{stop_at - 1:09d}.ckpt", map_location="cpu", weights_only=True)
+    assert saved["pipeline"]["_model.blocks_started"].tolist() == [True, True]
+
+    config = yaml.load((run / "config.yml").read_text(), Loader=yaml.Loader)
+    config.load_dir = run / "nerfstudio_models"
+    config.max_num_iterations = 0  # every phase
+    resumed = config.setup(local_rank=0, world_size=1)
+    resumed.setup()
+    assert resumed._start_step == stop_at and resumed.pipeline.phase_at(stop_at).block == 1
+    block1_table = saved["pipeline"]["_model.blocks.1.field.encoder.table"]
+    assert torch.equal(resumed.pipeline.model.phase_model(1).field.encoder.table.detach(), block1_table)
+    resumed.train()
+    assert latest_checkpoint_step(run / "nerfstudio_models") == 20 + 2 * 8 - 1
+
+
+# ------------------------------------------------------- scalar-nerf-block, in parallel
+
+
+def _block_command(global_run: Path, block: int, output_dir: Path) -> List[str]:
+    return [
+        sys.executable, "-m", "nerfstudio.scripts.train", "scalar-nerf-block",
+        "--global-run", str(global_run), "--block", str(block),
+        "--output-dir", str(output_dir),
+        "--pipeline.block-steps", str(BLOCK_STEPS),
+        "--pipeline.datamanager.train-num-rays-per-batch", "512",
+        "--viewer.websocket-port", str(free_port()),
+        "--viewer.quit-on-train-completion", "True",
+        "--logging.local-writer.enable", "False",
+    ]
+
+
+def _digests(run: Path) -> Dict[str, str]:
+    return {str(p.relative_to(run)): hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(run.rglob("*")) if p.is_file()}
+
+
+@pytest.mark.slow
+def test_two_block_processes_at_once_then_assemble(full_run: Path, tmp_path: Path) -> None:
+    before = _digests(full_run)
+    processes = [subprocess.Popen(_block_command(full_run, b, tmp_path), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) for b in (0, 1)]
+    logs = [p.communicate(timeout=900)[0] for p in processes]
+    for process, log in zip(processes, logs):
+        assert process.returncode == 0, log[-3000:]
+    assert _digests(full_run) == before, "a block run must not write into the global run"
+    block_runs = run_dirs(tmp_path, method="scalar-nerf-block")
+    assert len(block_runs) == 2
+    for block_run in block_runs:
+        assert load_blocks_json(block_run / "blocks.json") == load_blocks_json(full_run / "blocks.json")
+
+    result = subprocess.run(
+        ["scalar-nerf-assemble", "--global-run", str(full_run), "--block-runs", *map(str, block_runs), "--output-dir", str(tmp_path / "assembled")],
+        capture_output=True, text=True, timeout=300,
+    )
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    (assembled,) = run_dirs(tmp_path / "assembled")
+    state = _pipeline_state(assembled)
+    for block_run in block_runs:
+        block = yaml.load((block_run / "config.yml").read_text(), Loader=yaml.Loader).pipeline.only_block
+        block_state = _pipeline_state(block_run)
+        key = f"_model.blocks.{block}.field.encoder.table"
+        assert torch.equal(state[key], block_state[key])
+        assert not torch.equal(state[key], _pipeline_state(full_run)[key])
+    output = tmp_path / "eval.json"
+    evaluation = subprocess.run(
+        [sys.executable, "-m", "nerfstudio.scripts.eval", "--load-config", str(assembled / "config.yml"), "--output-path", str(output)],
+        capture_output=True, text=True, timeout=600,
+    )
+    assert evaluation.returncode == 0, evaluation.stdout[-3000:] + evaluation.stderr[-3000:]
+
+
+@pytest.mark.parametrize(
+    ("extra", "message"),
+    [
+        ([], "--global-run is required"),
+        (["--global-run", "/nonexistent/run"], "no config.yml"),
+    ],
+)
+def test_block_command_explains_bad_arguments(tmp_path: Path, extra: List[str], message: str) -> None:
+    result = subprocess.run(
+        [sys.executable, "-m", "nerfstudio.scripts.train", "scalar-nerf-block", "--output-dir", str(tmp_path / "out"), *extra],
+        capture_output=True, text=True, timeout=300,
+    )
+    assert result.returncode != 0 and message in result.stdout + result.stderr
+    assert "Traceback" not in result.stderr
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.slow
+def test_block_command_refuses_missing_block_and_unfinished_global(full_run: Path, tmp_path: Path) -> None:
+    result = subprocess.run(_block_command(full_run, 7, tmp_path), capture_output=True, text=True, timeout=300)
+    assert result.returncode != 0 and "--block 7 does not exist" in result.stdout + result.stderr
+    unfinished = tmp_path / "unfinished"
+    (unfinished / "nerfstudio_models").mkdir(parents=True)
+    (unfinished / "config.yml").write_text((full_run / "config.yml").read_text())
+    (unfinished / "blocks.json").write_text((full_run / "blocks.json").read_text())
+    result = subprocess.run(_block_command(unfinished, 0, tmp_path), capture_output=True, text=True, timeout=300)
+    assert result.returncode != 0 and "global phase" in result.stdout + result.stderr and "not finished" in result.stdout + result.stderr
