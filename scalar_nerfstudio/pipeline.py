@@ -22,6 +22,7 @@ from torch.cuda.amp.grad_scaler import GradScaler
 
 from scalar_nerfstudio.blocks.split import BlockSplit, BlockSplitError, load_blocks_json, split_cameras
 from scalar_nerfstudio.data.datamanager import ScalarDataManagerConfig, camera_centres
+from scalar_nerfstudio.viewer import BlockOverlay, fusion_dropdown
 from scalar_nerfstudio.models.scene_model import DecoderMode, ScalarSceneModel, ScalarSceneModelConfig, held_blocks
 
 
@@ -133,6 +134,9 @@ class ScalarPipeline(VanillaPipeline):
         self.model.to(device)
         if config.global_checkpoint is not None:
             self._load_global_model(Path(config.global_checkpoint), device)
+        # Viewer: fusion dropdown and block overlay (found by nerfstudio's viewer as attributes).
+        self.fusion_dropdown = fusion_dropdown(str(self.model.fusion_mode), self.split.num_blocks, self.model.set_fusion)
+        self.block_overlay = BlockOverlay(self.split, camera_centres(parsed).numpy())
         self._block_datamanager: Optional[DataManager] = None
         self._block_datamanager_index: Optional[int] = None
         self._device = device

@@ -11,6 +11,8 @@ from typing import List
 
 import pytest
 
+from scalar_nerfstudio.data.synthetic_scene import write_scene
+
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
 CASTLE = SHARED_DATA / "castle-P30"
@@ -61,4 +63,39 @@ def trained_castle_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     result = subprocess.run(command, capture_output=True, text=True, timeout=1200)
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     (run,) = run_dirs(output_dir)
+    return run
+
+
+# ------------------------------------------------- a tiny run through every phase (blocks, fusion)
+
+GLOBAL_STEPS, BLOCK_STEPS, NUM_BLOCKS = 40, 15, 2
+TOTAL_STEPS = GLOBAL_STEPS + NUM_BLOCKS * BLOCK_STEPS
+# A small field and batch so that a whole run (global + 2 blocks) takes well under a minute.
+TINY = [
+    "--pipeline.model.field.log2-hashmap-size", "14",
+    "--pipeline.model.field.max-resolution", "256",
+    "--pipeline.model.num-samples-per-ray", "32",
+    "--pipeline.datamanager.train-num-rays-per-batch", "512",
+    "--pipeline.model.occupancy-warmup-steps", "8",
+    "--pipeline.num-blocks", str(NUM_BLOCKS),
+    "--pipeline.global-steps", str(GLOBAL_STEPS),
+    "--pipeline.block-steps", str(BLOCK_STEPS),
+]
+
+
+@pytest.fixture(scope="session")
+def scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    folder = tmp_path_factory.mktemp("courtyard")
+    write_scene(folder, num_images=24, width=96, height=72)
+    return folder
+
+
+@pytest.fixture(scope="session")
+def full_run(scene: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """``ns-train scalar-nerf`` through the global phase and both blocks."""
+    output_dir = tmp_path_factory.mktemp("full_run")
+    result = subprocess.run(ns_train_command(scene, output_dir, *TINY), capture_output=True, text=True, timeout=900)
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    (run,) = run_dirs(output_dir)
+    assert "phases: global: steps 0-39, block 0: steps 40-54, block 1: steps 55-69" in " ".join(result.stdout.split())
     return run

@@ -16,44 +16,10 @@ import pytest
 import torch
 import yaml
 
-from conftest import CASTLE, free_port, ns_train_command, requires_castle, run_dirs
+from conftest import BLOCK_STEPS, CASTLE, NUM_BLOCKS, free_port, requires_castle, run_dirs
 from scalar_nerfstudio.blocks.split import load_blocks_json, split_cameras
-from scalar_nerfstudio.data.synthetic_scene import write_scene
 from scalar_nerfstudio.engine.trainer import latest_checkpoint_step
 from scalar_nerfstudio.method_configs import scalar_nerf
-
-GLOBAL_STEPS, BLOCK_STEPS, NUM_BLOCKS = 40, 15, 2
-TOTAL_STEPS = GLOBAL_STEPS + NUM_BLOCKS * BLOCK_STEPS
-# A small field and batch so that a whole run (global + 2 blocks) takes well under a minute.
-TINY = [
-    "--pipeline.model.field.log2-hashmap-size", "14",
-    "--pipeline.model.field.max-resolution", "256",
-    "--pipeline.model.num-samples-per-ray", "32",
-    "--pipeline.datamanager.train-num-rays-per-batch", "512",
-    "--pipeline.model.occupancy-warmup-steps", "8",
-    "--pipeline.num-blocks", str(NUM_BLOCKS),
-    "--pipeline.global-steps", str(GLOBAL_STEPS),
-    "--pipeline.block-steps", str(BLOCK_STEPS),
-]
-
-
-@pytest.fixture(scope="module")
-def scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    folder = tmp_path_factory.mktemp("courtyard")
-    write_scene(folder, num_images=24, width=96, height=72)
-    return folder
-
-
-@pytest.fixture(scope="module")
-def full_run(scene: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """``ns-train scalar-nerf`` through the global phase and both blocks."""
-    output_dir = tmp_path_factory.mktemp("full_run")
-    result = subprocess.run(ns_train_command(scene, output_dir, *TINY), capture_output=True, text=True, timeout=900)
-    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
-    (run,) = run_dirs(output_dir)
-    assert "phases: global: steps 0-39, block 0: steps 40-54, block 1: steps 55-69" in " ".join(result.stdout.split())
-    return run
-
 
 def _pipeline_state(run: Path) -> Dict[str, torch.Tensor]:
     step = latest_checkpoint_step(run / "nerfstudio_models")

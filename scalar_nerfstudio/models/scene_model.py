@@ -12,15 +12,18 @@ from dataclasses import dataclass, field
 from typing import Dict, List, Literal, Optional, Sequence, Tuple, Type
 
 import torch
+from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.models.base_model import Model
 from torch import Tensor, nn
 from torch.nn import Parameter
 
 from scalar_nerfstudio.blocks.split import Block, BlockSplit
+from scalar_nerfstudio.blocks.visibility import aabb_in_frustum
 from scalar_nerfstudio.fusion import ParsedFusionMode, fuse_outputs, parse_fusion_mode
 from scalar_nerfstudio.metrics import psnr
 from scalar_nerfstudio.models.scalar_model import ScalarModel, ScalarModelConfig
+from scalar_nerfstudio.viewer import BLOCK_PALETTE, GLOBAL_COLOUR
 
 DecoderMode = Literal["finetune", "frozen", "independent"]
 #: A block's region radius never drops below this (normalised scene units; cameras span [-1, 1]).
@@ -37,6 +40,8 @@ class ScalarSceneModelConfig(ScalarModelConfig):
     (Block-NeRF's inverse distance weighting), nearest, global-only, or block:<k>."""
     idw_gamma: float = 1.0
     """Exponent of inverse distance weighting (``idw`` fusion)."""
+    skip_invisible_blocks: bool = True
+    """When rendering a camera, skip blocks whose scaled AABB lies outside its view frustum."""
 
 
 def block_region(block: Block) -> Tuple[Tuple[float, float, float], float]:
@@ -76,6 +81,7 @@ class ScalarSceneModel(Model):
             b.index: len(b.image_indices) for b in self.split.blocks
         }
         self.fusion_mode: ParsedFusionMode = parse_fusion_mode(self.config.fusion, self.split.num_blocks)
+        self._view_blocks: Optional[List[int]] = None
         self.global_model = ScalarModel(config=self.config, scene_box=self.scene_box, num_train_data=self.num_train_data)
         blocks = {}
         for index in self.block_ids:
@@ -128,17 +134,38 @@ class ScalarSceneModel(Model):
         """Switch the fusion mode used by rendering (checked against the number of blocks)."""
         self.fusion_mode = parse_fusion_mode(mode, self.split.num_blocks)
 
-    def get_outputs(self, ray_bundle: RayBundle) -> Dict[str, Tensor]:
-        """Fused ``rgb`` [R, 3], ``depth`` [R, 1], ``accumulation`` [R, 1], ``block_winner`` [R, 1].
+    @torch.no_grad()
+    def get_outputs_for_camera(self, camera: Cameras, obb_box=None) -> Dict[str, Tensor]:
+        """Render one camera, fusing only the blocks whose AABB can be in its view (if configured)."""
+        self._view_blocks = self.visible_blocks(camera) if self.config.skip_invisible_blocks else None
+        try:
+            return super().get_outputs_for_camera(camera, obb_box=obb_box)
+        finally:
+            self._view_blocks = None
 
-        ``block_winner`` is the index of the block that gave the pixel (-1: the global model).
+    def visible_blocks(self, camera: Cameras) -> List[int]:
+        """Blocks whose scaled AABB is (possibly) inside ``camera``'s view frustum."""
+        camera = camera.reshape(()) if camera.shape != () else camera
+        pose = camera.camera_to_worlds.detach().cpu().numpy()
+        intrinsics = [float(v) for v in (camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height)]
+        return [
+            b.index for b in self.split.blocks
+            if aabb_in_frustum(pose, *intrinsics, b.aabb_min, b.aabb_max)
+        ]
+
+    def get_outputs(self, ray_bundle: RayBundle) -> Dict[str, Tensor]:
+        """Fused ``rgb`` [R, 3], ``depth`` [R, 1], ``accumulation`` [R, 1], ``block_winner`` [R, 1],
+        ``block_colour`` [R, 3].
+
+        ``block_winner`` is the index of the block that gave the pixel (-1: the global model);
+        ``block_colour`` shows it in the block's viewer colour.
         """
         mode = self.fusion_mode
         global_outputs = self.global_model(ray_bundle)
         block_ids = self._blocks_for(mode)
         if not block_ids:
             winner = torch.full_like(global_outputs["accumulation"], -1.0)
-            return {**global_outputs, "block_winner": winner}
+            return {**global_outputs, "block_winner": winner, "block_colour": self._winner_colours(winner)}
         block_outputs = [self.blocks[str(b)](ray_bundle) for b in block_ids]
         if mode.kind == "block":
             mode = ParsedFusionMode(kind="block", block_index=0)
@@ -150,13 +177,23 @@ class ScalarSceneModel(Model):
         )
         position_to_id = torch.tensor([-1, *block_ids], dtype=torch.float32, device=fused["rgb"].device)
         fused["block_winner"] = position_to_id[fused["block_winner"].reshape(-1) + 1][:, None]
+        fused["block_colour"] = self._winner_colours(fused["block_winner"])
         return fused
+
+    def _winner_colours(self, winner: Tensor) -> Tensor:
+        """[R, 1] block indices (-1: global) -> [R, 3] viewer colours."""
+        palette = torch.tensor([GLOBAL_COLOUR, *BLOCK_PALETTE.tolist()], dtype=torch.float32, device=winner.device)
+        index = winner.reshape(-1).long()
+        return palette[torch.where(index < 0, 0, 1 + index % len(BLOCK_PALETTE))]
 
     def _blocks_for(self, mode: ParsedFusionMode) -> List[int]:
         """Blocks to render for ``mode`` (none for global-only or before any block has trained)."""
         if mode.kind == "global-only":
             return []
         started = self.started_block_ids()
+        view_blocks = getattr(self, "_view_blocks", None)
+        if view_blocks is not None and mode.kind != "block":
+            started = [b for b in started if b in view_blocks]
         if mode.kind == "block":
             return [mode.block_index] if mode.block_index in started else []
         return started

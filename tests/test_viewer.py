@@ -1,0 +1,156 @@
+"""The viewer: fusion dropdown, block overlay and block colours, checked in a real headless browser."""
+
+from __future__ import annotations
+
+import io
+import shutil
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from conftest import NUM_BLOCKS, free_port
+from scalar_nerfstudio.blocks.split import Block, BlockSplit
+from scalar_nerfstudio.blocks.visibility import aabb_in_frustum
+from scalar_nerfstudio.viewer import box_edges, fusion_options
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+CHROMEDRIVER = shutil.which("chromedriver")
+
+
+# ------------------------------------------------------------------------- pure pieces
+
+
+def test_fusion_options_list_modes_and_blocks() -> None:
+    assert fusion_options(2) == ["global", "idw", "nearest", "global-only", "block:0", "block:1"]
+
+
+def test_box_edges_are_the_twelve_unit_edges() -> None:
+    edges = box_edges((0, 0, 0), (1, 2, 3))
+    assert edges.shape == (12, 2, 3)
+    lengths = sorted(np.linalg.norm(edges[:, 1] - edges[:, 0], axis=1).round(6).tolist())
+    assert lengths == [1.0] * 4 + [2.0] * 4 + [3.0] * 4
+
+
+def _camera_looking_down_minus_z() -> np.ndarray:
+    return np.concatenate([np.eye(3), np.zeros((3, 1))], axis=1)
+
+
+@pytest.mark.parametrize(
+    ("box", "visible"),
+    [
+        (((-1, -1, -6), (1, 1, -4)), True),      # straight ahead
+        (((-1, -1, 4), (1, 1, 6)), False),       # behind the camera
+        (((40, -1, -6), (42, 1, -4)), False),    # far to the right, outside the frustum
+        (((-1, -1, -1), (1, 1, 1)), True),       # the camera is inside the box
+        (((-100, -1, -6), (100, 1, -4)), True),  # spans the view although no corner is inside it
+    ],
+)
+def test_frustum_test(box, visible: bool) -> None:
+    pose = _camera_looking_down_minus_z()
+    assert aabb_in_frustum(pose, 100.0, 100.0, 50.0, 40.0, 100.0, 80.0, *box) is visible
+
+
+def test_frustum_test_keeps_blocks_for_non_finite_poses() -> None:
+    pose = _camera_looking_down_minus_z()
+    pose[0, 3] = float("nan")
+    assert aabb_in_frustum(pose, 100.0, 100.0, 50.0, 40.0, 100.0, 80.0, (-1, -1, 4), (1, 1, 6))
+
+
+# --------------------------------------------------------------------- the trained run
+
+
+def test_dropdown_switches_fusion_and_block_colours(full_run: Path) -> None:
+    from nerfstudio.utils.eval_utils import eval_setup
+
+    _, pipeline, _, _ = eval_setup(full_run / "config.yml", test_mode="test")
+    model = pipeline.model
+    camera, _ = next(iter(pipeline.datamanager.fixed_indices_eval_dataloader))
+    dropdown = pipeline.fusion_dropdown
+    assert dropdown.value == "global" and dropdown.options == fusion_options(NUM_BLOCKS)
+    fused = model.get_outputs_for_camera(camera)
+    winners = set(fused["block_winner"].unique().long().tolist())
+    assert winners <= set(range(NUM_BLOCKS)) and winners
+    dropdown.cb_hook(type("Element", (), {"value": "block:1"})())
+    assert str(model.fusion_mode) == "block:1"
+    single = model.get_outputs_for_camera(camera)
+    assert set(single["block_winner"].unique().long().tolist()) == {1}
+    # every pixel of block_colour is the colour of the block that won it
+    block1_colour = model._winner_colours(torch.tensor([[1.0]]))[0]
+    colours = single["block_colour"].reshape(-1, 3)
+    assert torch.allclose(colours, block1_colour.expand_as(colours))
+    assert not torch.allclose(block1_colour, model._winner_colours(torch.tensor([[-1.0]]))[0])
+
+
+# ------------------------------------------------------------------------ the browser
+
+
+def _screenshot(driver) -> np.ndarray:
+    from PIL import Image
+
+    return np.asarray(Image.open(io.BytesIO(driver.get_screenshot_as_png())).convert("RGB"), dtype=np.float32)
+
+
+def _settled(driver, viewport, timeout: float = 240.0) -> np.ndarray:
+    """The render area once two screenshots 3 s apart agree (progressive refinement is over)."""
+    deadline = time.time() + timeout
+    previous = None
+    while time.time() < deadline:
+        image = _screenshot(driver)[viewport]
+        if previous is not None and np.abs(image - previous).mean() < 0.05:
+            return image
+        previous = image
+        time.sleep(3.0)
+    raise AssertionError("the viewer's render did not settle")
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(CHROMIUM is None or CHROMEDRIVER is None, reason="chromium/chromedriver not installed (tools/setup-tests.sh installs them)")
+def test_browser_shows_a_render_that_changes_with_fusion(full_run: Path) -> None:
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
+    from selenium.webdriver.common.by import By
+
+    port = free_port()
+    viewer = subprocess.Popen(
+        [sys.executable, "-m", "nerfstudio.scripts.viewer.run_viewer", "--load-config", str(full_run / "config.yml"),
+         "--viewer.websocket-port", str(port)],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )
+    options = webdriver.ChromeOptions()
+    options.binary_location = CHROMIUM
+    for argument in ("--headless=new", "--no-sandbox", "--disable-gpu", "--window-size=1000,700", "--enable-unsafe-swiftshader"):
+        options.add_argument(argument)
+    driver = None
+    try:
+        deadline = time.time() + 300
+        while time.time() < deadline and viewer.poll() is None:
+            try:
+                urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=5).close()
+                break
+            except OSError:
+                time.sleep(1.0)
+        assert viewer.poll() is None, viewer.stdout.read()[-3000:] if viewer.stdout else ""
+        driver = webdriver.Chrome(service=Service(CHROMEDRIVER), options=options)
+        driver.get(f"http://127.0.0.1:{port}/")
+        viewport = (slice(80, 520), slice(20, 660))  # the 3D view, left of the control panel
+        global_render = _settled(driver, viewport)
+        assert global_render.std() > 5.0, "the render area is blank"
+
+        label = driver.find_element(By.XPATH, "//label[text()='Fusion']")
+        driver.find_element(By.ID, label.get_attribute("for")).click()
+        time.sleep(1.0)
+        driver.find_element(By.XPATH, "//*[@role='option'][normalize-space()='block:0']").click()
+        block_render = _settled(driver, viewport)
+        assert block_render.std() > 5.0
+        assert np.abs(block_render - global_render).mean() > 0.5, "switching the fusion did not change the image"
+    finally:
+        if driver is not None:
+            driver.quit()
+        viewer.terminate()
+        viewer.wait(timeout=60)
