@@ -369,6 +369,7 @@ def save_blocks_json(split: BlockSplit, path: Path, image_names: Sequence[str]) 
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
+        os.fchmod(fd, 0o644)  # mkstemp creates 0600; blocks.json is read by other users' block runs
         with os.fdopen(fd, "w", encoding="utf-8") as handle:
             handle.write(payload + "\n")
             handle.flush()

@@ -11,11 +11,13 @@ from typing import Any, Dict, Literal, Optional, Type
 
 import torch
 import yaml
+from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 from nerfstudio.engine.optimizers import Optimizers
 from nerfstudio.engine.trainer import Trainer, TrainerConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from scalar_nerfstudio.blocks.split import format_split_table, save_blocks_json
+from scalar_nerfstudio.data.validation import SceneError, check_scene
 from scalar_nerfstudio.engine.schedulers import WarmupExponentialDecaySchedulerConfig
 
 CHECKPOINT_PATTERN = re.compile(r"^step-(\d{9})\.ckpt$")
@@ -53,13 +55,29 @@ class ScalarTrainerConfig(TrainerConfig):
     """Stop after this many steps in total; 0: train every phase (global steps + blocks x block steps)."""
 
     def set_timestamp(self) -> None:
-        """Resume into the run folder that ``load_dir`` belongs to, instead of starting a new one."""
+        """Check the scene, then resume into the run folder that ``load_dir`` belongs to (if any).
+
+        ``ns-train`` calls this before it writes anything, so a bad scene ends here with one clear
+        message and no run folder.
+        """
+        self._check_scene()
         run_dir = self._resumed_run_dir()
         if run_dir is not None and self.timestamp == "{timestamp}":
             self.output_dir = run_dir.parent.parent.parent
             self.experiment_name = run_dir.parent.parent.name
             self.timestamp = run_dir.name
         super().set_timestamp()
+
+    def _check_scene(self) -> None:
+        dataparser = self.pipeline.datamanager.dataparser
+        if not isinstance(dataparser, NerfstudioDataParserConfig):
+            return
+        data = self.data if self.data is not None else getattr(self.pipeline.datamanager, "data", None) or dataparser.data
+        interval = dataparser.eval_interval if dataparser.eval_mode == "interval" else None
+        try:
+            check_scene(Path(data), eval_interval=interval)
+        except SceneError as error:
+            raise SystemExit(f"{self.method_name}: bad scene: {error}") from None
 
     def _resumed_run_dir(self) -> Optional[Path]:
         if self.load_dir is None:

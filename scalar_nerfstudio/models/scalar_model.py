@@ -12,6 +12,7 @@ Rendering path (per ray batch, flat tensors, no nerfstudio RaySamples on the hot
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 from typing import Dict, List, Literal, Optional, Tuple, Type
 
@@ -33,6 +34,23 @@ from scalar_nerfstudio.model_components.rendering import (
 from scalar_nerfstudio.model_components.sampling import OccupancyGrid, lin_disp_spacing, sample_intervals
 
 _CHUNK = 1 << 16
+
+
+def _neutralise_bad_rays(origins: Tensor, directions: Tensor, nears: Tensor, fars: Tensor) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Rays [R, 3] with a NaN/inf origin or direction (or near/far) are reported and made empty.
+
+    They render as the background with zero accumulation instead of spreading NaN through the batch.
+    """
+    bad = ~(torch.isfinite(origins).all(-1) & torch.isfinite(directions).all(-1) & torch.isfinite(nears[:, 0]) & torch.isfinite(fars[:, 0]))
+    if not bool(bad.any()):
+        return origins, directions, nears, fars
+    warnings.warn(f"{int(bad.sum())} of {bad.numel()} rays have a NaN/inf origin, direction or near/far; they render as background.")
+    keep = ~bad[:, None]
+    origins = torch.where(keep, origins, torch.zeros_like(origins))
+    directions = torch.where(keep, directions, torch.tensor([0.0, 0.0, 1.0], dtype=directions.dtype, device=directions.device))
+    nears = torch.where(keep, nears, torch.ones_like(nears))
+    fars = torch.where(keep, fars, torch.ones_like(fars))
+    return origins, directions, nears, fars
 
 
 @dataclass
@@ -121,9 +139,9 @@ class ScalarModel(Model):
 
     @torch.no_grad()
     def _density_no_grad(self, unit_positions: Tensor) -> Tensor:
-        """[M, 3] contracted unit-cube positions -> [M] density, evaluated in chunks without grad."""
+        """[M, 3] contracted unit-cube positions -> [M] float32 density, evaluated in chunks without grad."""
         return torch.cat(
-            [self.field.density_at_unit(chunk)[0] for chunk in torch.split(unit_positions, _CHUNK)]
+            [self.field.density_at_unit(chunk)[0].float() for chunk in torch.split(unit_positions, _CHUNK)]
         ) if unit_positions.shape[0] > 0 else unit_positions.new_zeros(0)
 
     # ---------------------------------------------------------------------------------- rendering
@@ -135,6 +153,7 @@ class ScalarModel(Model):
         nears = ray_bundle.nears.reshape(-1, 1) if ray_bundle.nears is not None else origins.new_full((num_rays, 1), self.config.near_plane)
         fars = ray_bundle.fars.reshape(-1, 1) if ray_bundle.fars is not None else origins.new_full((num_rays, 1), self.config.far_plane)
         camera_indices = ray_bundle.camera_indices.reshape(-1) if ray_bundle.camera_indices is not None else None
+        origins, directions, nears, fars = _neutralise_bad_rays(origins, directions, nears, fars)
 
         t_starts, t_ends = sample_intervals(nears, fars, self.config.num_samples_per_ray, jitter=self.training)
         t_mid = (t_starts + t_ends) / 2.0
@@ -148,6 +167,8 @@ class ScalarModel(Model):
         density, geo = self.field.density_at_unit(unit_positions[sample_ids])
         point_indices = camera_indices[ray_ids] if camera_indices is not None else None
         rgb_points = self.field.colour(geo, directions[ray_ids], point_indices)
+        # Volume rendering in float32 also under autocast (bf16/fp16 cumulative sums drift).
+        density, rgb_points = density.float(), rgb_points.float()
 
         densities = torch.zeros(num_rays * num_samples, dtype=density.dtype, device=density.device)
         densities = densities.index_put((sample_ids,), density).reshape(num_rays, num_samples)
