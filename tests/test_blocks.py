@@ -258,3 +258,35 @@ def test_block_command_refuses_missing_block_and_unfinished_global(full_run: Pat
     (unfinished / "blocks.json").write_text((full_run / "blocks.json").read_text())
     result = subprocess.run(_block_command(unfinished, 0, tmp_path), capture_output=True, text=True, timeout=300)
     assert result.returncode != 0 and "global phase" in result.stdout + result.stderr and "not finished" in result.stdout + result.stderr
+
+
+@pytest.mark.slow
+def test_sigkilled_block_run_resumes_and_leaves_the_global_run_intact(full_run: Path, tmp_path: Path) -> None:
+    import signal
+    import time
+
+    before = _digests(full_run)
+    command = _block_command(full_run, 0, tmp_path)
+    command[command.index("--pipeline.block-steps") + 1] = "400"
+    process = subprocess.Popen([*command, "--steps-per-save", "2"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 600
+    step = None
+    while time.time() < deadline and process.poll() is None:
+        runs = run_dirs(tmp_path, method="scalar-nerf-block")
+        step = latest_checkpoint_step(runs[0] / "nerfstudio_models") if runs else None
+        if step is not None and step >= 4:
+            break
+        time.sleep(0.05)
+    process.send_signal(signal.SIGKILL)
+    process.wait()
+    assert step is not None and step >= 4, "no checkpoint was written before the deadline"
+    assert _digests(full_run) == before, "a killed block run must not touch the global run"
+    (run,) = run_dirs(tmp_path, method="scalar-nerf-block")
+    killed_at = latest_checkpoint_step(run / "nerfstudio_models")
+
+    resume = [*_block_command(full_run, 0, tmp_path), "--load-dir", str(run / "nerfstudio_models"), "--max-num-iterations", str(killed_at + 4)]
+    result = subprocess.run(resume, capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    assert run_dirs(tmp_path, method="scalar-nerf-block") == [run], "the resumed block run continues in its folder"
+    assert latest_checkpoint_step(run / "nerfstudio_models") == killed_at + 3
+    assert _digests(full_run) == before

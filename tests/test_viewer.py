@@ -154,3 +154,50 @@ def test_browser_shows_a_render_that_changes_with_fusion(full_run: Path) -> None
             driver.quit()
         viewer.terminate()
         viewer.wait(timeout=60)
+
+
+# ------------------------------------------------------------------ render and eval commands
+
+
+@pytest.mark.slow
+def test_render_command_fusion_changes_the_images_and_ns_render_works(full_run: Path, tmp_path: Path) -> None:
+    from PIL import Image
+
+    rendered = {}
+    for name, command in {
+        "global-only": ["scalar-nerf-render", "dataset", "--fusion", "global-only"],
+        "block:1": ["scalar-nerf-render", "dataset", "--fusion", "block:1"],
+        "ns-render": [sys.executable, "-m", "nerfstudio.scripts.render", "dataset"],
+    }.items():
+        output = tmp_path / name.replace(":", "_")
+        result = subprocess.run(
+            [*command, "--load-config", str(full_run / "config.yml"), "--output-path", str(output), "--split", "test", "--rendered-output-names", "rgb"],
+            capture_output=True, text=True, timeout=600,
+        )
+        assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+        images = sorted(output.rglob("*.jpg")) + sorted(output.rglob("*.png"))
+        assert images, f"{name}: nothing rendered under {output}"
+        rendered[name] = np.asarray(Image.open(images[0]).convert("RGB"), dtype=np.float32)
+    assert np.abs(rendered["global-only"] - rendered["block:1"]).mean() > 0.5
+    bad = subprocess.run(
+        ["scalar-nerf-render", "dataset", "--load-config", str(full_run / "config.yml"), "--fusion", "median", "--output-path", str(tmp_path / "x")],
+        capture_output=True, text=True, timeout=300,
+    )
+    assert bad.returncode != 0 and "unknown fusion mode 'median'" in bad.stdout + bad.stderr and "Traceback" not in bad.stderr
+
+
+@pytest.mark.slow
+def test_eval_fusion_table_has_every_mode(full_run: Path, tmp_path: Path) -> None:
+    import json
+
+    result = subprocess.run(
+        ["scalar-nerf-eval-fusion", "--load-config", str(full_run / "config.yml"), "--output-dir", str(tmp_path)],
+        capture_output=True, text=True, timeout=900,
+    )
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    table = json.loads((tmp_path / "fusion.json").read_text())
+    for mode in ("global", "idw", "nearest", "global-only"):
+        assert 5.0 < table[mode]["psnr"] < 60.0 and 0.0 < table[mode]["ssim"] <= 1.0 and table[mode]["ms_per_image"] > 0
+    assert table["skipping"]["num_images"] == table["global"]["num_images"] > 0
+    markdown = (tmp_path / "fusion.md").read_text()
+    assert "| global |" in markdown and "| idw |" in markdown

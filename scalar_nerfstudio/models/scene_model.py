@@ -20,7 +20,7 @@ from torch.nn import Parameter
 
 from scalar_nerfstudio.blocks.split import Block, BlockSplit
 from scalar_nerfstudio.blocks.visibility import aabb_in_frustum
-from scalar_nerfstudio.fusion import ParsedFusionMode, fuse_outputs, parse_fusion_mode
+from scalar_nerfstudio.fusion import ParsedFusionMode, fuse_outputs, nearest_block, parse_fusion_mode
 from scalar_nerfstudio.metrics import psnr
 from scalar_nerfstudio.models.scalar_model import ScalarModel, ScalarModelConfig
 from scalar_nerfstudio.viewer import BLOCK_PALETTE, GLOBAL_COLOUR
@@ -82,6 +82,8 @@ class ScalarSceneModel(Model):
         }
         self.fusion_mode: ParsedFusionMode = parse_fusion_mode(self.config.fusion, self.split.num_blocks)
         self._view_blocks: Optional[List[int]] = None
+        self.rendered_models: set = set()
+        """Models (block indices, "global") rendered since the last camera started (for reports)."""
         self.global_model = ScalarModel(config=self.config, scene_box=self.scene_box, num_train_data=self.num_train_data)
         blocks = {}
         for index in self.block_ids:
@@ -138,6 +140,7 @@ class ScalarSceneModel(Model):
     def get_outputs_for_camera(self, camera: Cameras, obb_box=None) -> Dict[str, Tensor]:
         """Render one camera, fusing only the blocks whose AABB can be in its view (if configured)."""
         self._view_blocks = self.visible_blocks(camera) if self.config.skip_invisible_blocks else None
+        self.rendered_models: set = set()
         try:
             return super().get_outputs_for_camera(camera, obb_box=obb_box)
         finally:
@@ -161,8 +164,14 @@ class ScalarSceneModel(Model):
         ``block_colour`` shows it in the block's viewer colour.
         """
         mode = self.fusion_mode
-        global_outputs = self.global_model(ray_bundle)
         block_ids = self._blocks_for(mode)
+        if mode.kind == "nearest" and len(block_ids) > 1:  # render only the blocks some ray is nearest to
+            centres = self.block_centres[block_ids].to(ray_bundle.origins.device)
+            nearest = nearest_block(ray_bundle.origins.reshape(-1, 3), centres).reshape(-1)
+            block_ids = [block_ids[i] for i in sorted(set(nearest.tolist()))]
+        # The global model is rendered only where the fusion needs it (idw / nearest / block do not).
+        global_outputs = self.global_model(ray_bundle) if mode.kind in ("global", "global-only") or not block_ids else None
+        self.rendered_models.update([*block_ids, *(["global"] if global_outputs is not None else [])])
         if not block_ids:
             winner = torch.full_like(global_outputs["accumulation"], -1.0)
             return {**global_outputs, "block_winner": winner, "block_colour": self._winner_colours(winner)}

@@ -44,12 +44,13 @@ def _render_all(pipeline, mode: str, skip: bool) -> Tuple[Dict[str, float], List
     model.set_fusion(mode)
     model.config.skip_invisible_blocks = skip
     sums: Dict[str, float] = {}
-    images, times, blocks_rendered = [], [], []
+    images, times, blocks_rendered, globals_rendered = [], [], [], []
     for camera, batch in pipeline.datamanager.fixed_indices_eval_dataloader:
         start = time.perf_counter()
         outputs = model.get_outputs_for_camera(camera=camera)
         times.append(time.perf_counter() - start)
-        blocks_rendered.append(len(model.visible_blocks(camera)) if skip else len(model.started_block_ids()))
+        blocks_rendered.append(len(model.rendered_models - {"global"}))
+        globals_rendered.append("global" in model.rendered_models)
         metrics, _ = model.get_image_metrics_and_images(outputs, batch)
         for key, value in metrics.items():
             sums[key] = sums.get(key, 0.0) + float(value)
@@ -58,8 +59,8 @@ def _render_all(pipeline, mode: str, skip: bool) -> Tuple[Dict[str, float], List
     result = {key: value / count for key, value in sums.items()}
     result["ms_per_image"] = 1000.0 * sum(times) / count
     result["num_images"] = len(images)
-    if mode not in ("global-only",) and not mode.startswith("block:"):
-        result["blocks_rendered_per_image"] = sum(blocks_rendered) / count
+    result["blocks_rendered_per_image"] = sum(blocks_rendered) / count
+    result["global_model_rendered"] = all(globals_rendered)
     return result, images
 
 
@@ -95,7 +96,7 @@ def evaluate(args: EvalFusionArgs) -> Dict[str, Dict[str, float]]:
 def markdown_table(table: Dict[str, Dict[str, float]]) -> str:
     """The per-mode rows as a Markdown table (and a line on skipping)."""
     has_lpips = any("lpips" in row for row in table.values())
-    header = "| fusion | PSNR | SSIM |" + (" LPIPS |" if has_lpips else "") + " ms / image | blocks rendered / image |"
+    header = "| fusion | PSNR | SSIM |" + (" LPIPS |" if has_lpips else "") + " ms / image | models rendered / image |"
     lines = [header, "|" + "---|" * (header.count("|") - 1)]
     for mode, row in table.items():
         if mode == "skipping":
@@ -103,7 +104,8 @@ def markdown_table(table: Dict[str, Dict[str, float]]) -> str:
         cells = [mode, f"{row['psnr']:.2f}", f"{row['ssim']:.3f}"]
         if has_lpips:
             cells.append(f"{row['lpips']:.3f}" if "lpips" in row else "-")
-        cells += [f"{row['ms_per_image']:.0f}", f"{row['blocks_rendered_per_image']:.2f}" if "blocks_rendered_per_image" in row else "-"]
+        models = f"{row['blocks_rendered_per_image']:.2f} blocks" + (" + global" if row.get("global_model_rendered") else "")
+        cells += [f"{row['ms_per_image']:.0f}", models]
         lines.append("| " + " | ".join(cells) + " |")
     if "skipping" in table:
         s = table["skipping"]
