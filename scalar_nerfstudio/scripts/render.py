@@ -55,55 +55,36 @@ def _check(fusion: Optional[str]) -> None:
 
 
 @dataclass
-class FusionRenderCameraPath(ns_render.RenderCameraPath):
+class _FusionOption:
+    """Adds ``--fusion`` to one of ns-render's commands (put first among the bases)."""
+
+    fusion: Optional[str] = None
+    """global, idw, nearest, global-only or block:K (default: the run's configured fusion)."""
+
+    def main(self) -> None:
+        _check(self.fusion)
+        with fusion_applied(self.fusion):
+            super().main()  # type: ignore[misc]
+
+
+@dataclass
+class FusionRenderCameraPath(_FusionOption, ns_render.RenderCameraPath):
     """Render a camera path (as ``ns-render camera-path``) with a chosen fusion."""
 
-    fusion: Optional[str] = None
-    """global, idw, nearest, global-only or block:K (default: the run's configured fusion)."""
-
-    def main(self) -> None:
-        _check(self.fusion)
-        with fusion_applied(self.fusion):
-            super().main()
-
 
 @dataclass
-class FusionRenderInterpolated(ns_render.RenderInterpolated):
+class FusionRenderInterpolated(_FusionOption, ns_render.RenderInterpolated):
     """Render a trajectory interpolated between training or eval cameras, with a chosen fusion."""
 
-    fusion: Optional[str] = None
-    """global, idw, nearest, global-only or block:K (default: the run's configured fusion)."""
-
-    def main(self) -> None:
-        _check(self.fusion)
-        with fusion_applied(self.fusion):
-            super().main()
-
 
 @dataclass
-class FusionSpiralRender(ns_render.SpiralRender):
+class FusionSpiralRender(_FusionOption, ns_render.SpiralRender):
     """Render a spiral trajectory, with a chosen fusion."""
 
-    fusion: Optional[str] = None
-    """global, idw, nearest, global-only or block:K (default: the run's configured fusion)."""
-
-    def main(self) -> None:
-        _check(self.fusion)
-        with fusion_applied(self.fusion):
-            super().main()
-
 
 @dataclass
-class FusionDatasetRender(ns_render.DatasetRender):
+class FusionDatasetRender(_FusionOption, ns_render.DatasetRender):
     """Render the dataset's images (train/val/test split), with a chosen fusion."""
-
-    fusion: Optional[str] = None
-    """global, idw, nearest, global-only or block:K (default: the run's configured fusion)."""
-
-    def main(self) -> None:
-        _check(self.fusion)
-        with fusion_applied(self.fusion):
-            super().main()
 
 
 Commands = tyro.conf.FlagConversionOff[
