@@ -96,6 +96,31 @@ def _screenshot(driver) -> np.ndarray:
     return np.asarray(Image.open(io.BytesIO(driver.get_screenshot_as_png())).convert("RGB"), dtype=np.float32)
 
 
+def _choose(driver, label_text: str, option: str) -> None:
+    """Pick ``option`` in the viewer's dropdown labelled ``label_text``."""
+    from selenium.webdriver.common.by import By
+
+    label = driver.find_element(By.XPATH, f"//label[text()='{label_text}']")
+    field = driver.find_element(By.ID, label.get_attribute("for"))
+    driver.execute_script("arguments[0].scrollIntoView({block: 'center'});", field)
+    field.click()
+    time.sleep(1.0)
+    driver.find_element(By.XPATH, f"//*[@role='option'][normalize-space()='{option}']").click()
+    assert field.get_attribute("value") == option
+
+
+def _wait_for_change(driver, viewport, before: np.ndarray, timeout: float = 180.0) -> None:
+    """Wait until the render area differs from ``before`` (the new render has arrived)."""
+    deadline = time.time() + timeout
+    while time.time() < deadline and np.abs(_screenshot(driver)[viewport] - before).mean() <= 2.0:
+        time.sleep(1.0)
+
+
+def _colourfulness(image: np.ndarray) -> float:
+    """Mean spread between an RGB pixel's largest and smallest channel (0 for greys)."""
+    return float((image.max(axis=-1) - image.min(axis=-1)).mean())
+
+
 def _settled(driver, viewport, timeout: float = 240.0) -> np.ndarray:
     """The render area once two screenshots 3 s apart agree (progressive refinement is over)."""
     deadline = time.time() + timeout
@@ -139,16 +164,19 @@ def test_browser_shows_a_render_that_changes_with_fusion(full_run: Path) -> None
         driver = webdriver.Chrome(service=Service(CHROMEDRIVER), options=options)
         driver.get(f"http://127.0.0.1:{port}/")
         viewport = (slice(80, 520), slice(20, 660))  # the 3D view, left of the control panel
-        global_render = _settled(driver, viewport)
-        assert global_render.std() > 5.0, "the render area is blank"
+        rgb_render = _settled(driver, viewport)
+        assert rgb_render.std() > 5.0, "the render area is blank"
 
-        label = driver.find_element(By.XPATH, "//label[text()='Fusion']")
-        driver.find_element(By.ID, label.get_attribute("for")).click()
-        time.sleep(1.0)
-        driver.find_element(By.XPATH, "//*[@role='option'][normalize-space()='block:0']").click()
-        block_render = _settled(driver, viewport)
-        assert block_render.std() > 5.0
-        assert np.abs(block_render - global_render).mean() > 0.5, "switching the fusion did not change the image"
+        # The block_colour output paints each pixel in the colour of the block that won it:
+        # under global fusion that is block colours (tab10 blue/orange), under global-only grey.
+        _choose(driver, "Output type", "block_colour")
+        _wait_for_change(driver, viewport, rgb_render)
+        blocks_render = _settled(driver, viewport)
+        _choose(driver, "Fusion", "global-only")
+        _wait_for_change(driver, viewport, blocks_render)
+        global_only_render = _settled(driver, viewport)
+        assert _colourfulness(blocks_render) > _colourfulness(global_only_render) + 10.0, "fusion did not change the block colours"
+        assert np.abs(global_only_render - blocks_render).mean() > 5.0, "switching the fusion did not change the image"
     finally:
         if driver is not None:
             driver.quit()
