@@ -105,6 +105,16 @@ def test_check_scene_names_the_problem(good_scene: Path, tmp_path: Path, case: s
         check_scene(scene, eval_interval=8)
 
 
+@pytest.mark.parametrize(
+    ("mode", "message"),
+    [("fraction", "both need at least one"), ("filename", "needs image names containing")],
+)
+def test_empty_eval_split_in_other_modes(good_scene: Path, mode: str, message: str) -> None:
+    fraction = 1.0 if mode == "fraction" else 0.9  # fraction 1.0 puts every image in training
+    with pytest.raises(SceneError, match=message):
+        check_scene(good_scene, eval_mode=mode, train_fraction=fraction)
+
+
 @pytest.mark.parametrize("case", ["missing image", "truncated transforms", "nan pose", "empty folder", "no training image"])
 def test_ns_train_stops_cleanly_and_writes_nothing(good_scene: Path, tmp_path: Path, case: str) -> None:
     breaker, message = CASES[case]

@@ -89,13 +89,17 @@ def _check_image(path: Path, index: int, image: Path) -> None:
         raise SceneError(f"{path}: frame {index}: the image {image} cannot be read as an image ({error}).") from None
 
 
-def check_scene(data: Path, eval_interval: Optional[int] = None) -> int:
+def check_scene(
+    data: Path, eval_interval: Optional[int] = None, eval_mode: str = "interval", train_fraction: float = 0.9
+) -> int:
     """Validate a nerfstudio-format scene; returns its number of frames.
 
     Args:
         data: the scene folder (or its transforms.json).
         eval_interval: with nerfstudio-data's ``interval`` eval mode, every ``eval_interval``-th
             image is held out; the check makes sure that leaves both a train and an eval image.
+        eval_mode: nerfstudio-data's ``--eval-mode`` (interval, fraction, filename, all).
+        train_fraction: ``--train-split-fraction`` of the ``fraction`` mode.
 
     Raises:
         SceneError: naming the file, frame and problem.
@@ -111,7 +115,19 @@ def check_scene(data: Path, eval_interval: Optional[int] = None) -> int:
         _check_pose(transforms, index, frame)
         _check_intrinsics(transforms, index, frame, content)
         _check_image(transforms, index, root / frame["file_path"])
-    if eval_interval is not None:
+    names = [str(frame["file_path"]) for frame in frames]
+    if eval_mode == "fraction":
+        num_train = math.ceil(len(frames) * train_fraction)
+        if num_train < 1 or len(frames) - num_train < 1:
+            raise SceneError(
+                f"{transforms}: {len(frames)} frame(s) split {train_fraction:g} for training leaves "
+                f"{num_train} training and {len(frames) - num_train} eval image(s); both need at least one."
+            )
+    if eval_mode == "filename":
+        for kind in ("train", "eval"):
+            if not any(kind in name for name in names):
+                raise SceneError(f"{transforms}: --eval-mode filename needs image names containing \"{kind}\"; none do, so that split would be empty.")
+    if eval_mode == "interval" and eval_interval is not None:
         if eval_interval < 1:
             raise SceneError(f"--eval-interval {eval_interval}: must be at least 1.")
         num_eval = len(range(0, len(frames), eval_interval))

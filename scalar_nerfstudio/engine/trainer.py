@@ -73,9 +73,9 @@ class ScalarTrainerConfig(TrainerConfig):
         if not isinstance(dataparser, NerfstudioDataParserConfig):
             return
         data = self.data if self.data is not None else getattr(self.pipeline.datamanager, "data", None) or dataparser.data
-        interval = dataparser.eval_interval if dataparser.eval_mode == "interval" else None
         try:
-            check_scene(Path(data), eval_interval=interval)
+            check_scene(Path(data), eval_interval=dataparser.eval_interval, eval_mode=dataparser.eval_mode,
+                        train_fraction=dataparser.train_split_fraction)
         except SceneError as error:
             raise SystemExit(f"{self.method_name}: bad scene: {error}") from None
 
