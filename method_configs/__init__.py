@@ -6,7 +6,7 @@ Installed as ``scalar_nerfstudio.method_configs`` and registered through the
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Type
 
 import torch

@@ -183,6 +183,13 @@ class ScalarPipeline(VanillaPipeline):
         return self.phases[-1]
 
     # --------------------------------------------------------------------------- training
+    def _enter_phase(self, step: int) -> Phase:
+        """The phase at ``step``; a block's phase starts (its decoder is copied) on its first step."""
+        phase = self.phase_at(step)
+        if phase.block is not None:
+            self.model.begin_block(phase.block)
+        return phase
+
     def _train_datamanager(self, phase: Phase) -> DataManager:
         """The global datamanager, or (built once per phase) one over the block's images only."""
         if phase.block is None:
@@ -201,9 +208,7 @@ class ScalarPipeline(VanillaPipeline):
 
     def get_train_loss_dict(self, step: int):
         """One training batch of the phase at ``step``, through that phase's model."""
-        phase = self.phase_at(step)
-        if phase.block is not None:
-            self.model.begin_block(phase.block)
+        phase = self._enter_phase(step)
         ray_bundle, batch = self._train_datamanager(phase).next_train(step)
         model = self.model.phase_model(phase.block)
         outputs = model(ray_bundle)
@@ -223,9 +228,7 @@ class ScalarPipeline(VanillaPipeline):
         ]
 
     def _before_train_step(self, step: int) -> None:
-        phase = self.phase_at(step)
-        if phase.block is not None:
-            self.model.begin_block(phase.block)
+        phase = self._enter_phase(step)
         self.model.phase_model(phase.block)._update_occupancy(step - phase.start_step)
 
     def param_group_phases(self) -> dict:

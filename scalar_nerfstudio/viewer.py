@@ -18,6 +18,7 @@ import numpy as np
 from nerfstudio.viewer.viewer_elements import ViewerControl, ViewerDropdown
 
 from scalar_nerfstudio.blocks.split import BlockSplit
+from scalar_nerfstudio.blocks.visibility import box_corners
 from scalar_nerfstudio.fusion import FUSION_MODES
 
 #: nerfstudio draws the scene at 10x the dataparser frame (viewer.VISER_NERFSTUDIO_SCALE_RATIO).
@@ -58,8 +59,7 @@ def fusion_dropdown(current: str, num_blocks: int, on_change: Callable[[str], No
 
 def box_edges(aabb_min: Sequence[float], aabb_max: Sequence[float]) -> np.ndarray:
     """[12, 2, 3] the edges of an axis-aligned box."""
-    lo, hi = np.asarray(aabb_min, dtype=np.float64), np.asarray(aabb_max, dtype=np.float64)
-    corners = np.array([[(hi if (i >> a) & 1 else lo)[a] for a in range(3)] for i in range(8)])
+    corners = box_corners(aabb_min, aabb_max)  # corner i has bit a set where it is at the max on axis a
     edges = [(i, i | (1 << a)) for i in range(8) for a in range(3) if not (i >> a) & 1]
     return np.stack([corners[[i, j]] for i, j in edges])
 

@@ -3,15 +3,18 @@
 from __future__ import annotations
 
 import os
+import signal
 import socket
 import subprocess
 import sys
+import time
 from pathlib import Path
-from typing import List
+from typing import List, Optional
 
 import pytest
 
 from scalar_nerfstudio.data.synthetic_scene import write_scene
+from scalar_nerfstudio.engine.trainer import latest_checkpoint_step
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
@@ -44,6 +47,32 @@ def ns_train_command(data: Path, output_dir: Path, *extra: str, method: str = "s
 def run_dirs(output_dir: Path, method: str = "scalar-nerf") -> List[Path]:
     """Run folders (``.../METHOD/TIMESTAMP``) under ``output_dir``."""
     return sorted(p.parent for p in output_dir.glob(f"*/{method}/*/config.yml"))
+
+
+def ns_eval(run: Path, output: Path) -> subprocess.CompletedProcess:
+    """``ns-eval`` of a run folder as a user runs it, writing ``output`` (JSON)."""
+    return subprocess.run(
+        [sys.executable, "-m", "nerfstudio.scripts.eval", "--load-config", str(run / "config.yml"), "--output-path", str(output)],
+        capture_output=True, text=True, timeout=600,
+    )
+
+
+def sigkill_after_checkpoint(process: subprocess.Popen, output_dir: Path, min_step: int, method: str = "scalar-nerf") -> Optional[int]:
+    """SIGKILL ``process`` once its run under ``output_dir`` has a checkpoint at step >= ``min_step``.
+
+    Returns the newest checkpoint step seen before the kill (None if none appeared in 600 s).
+    """
+    deadline = time.time() + 600
+    step = None
+    while time.time() < deadline and process.poll() is None:
+        runs = run_dirs(output_dir, method)
+        step = latest_checkpoint_step(runs[0] / "nerfstudio_models") if runs else None
+        if step is not None and step >= min_step:
+            break
+        time.sleep(0.05)
+    process.send_signal(signal.SIGKILL)
+    process.wait()
+    return step
 
 
 def castle_args() -> List[str]:

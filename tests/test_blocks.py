@@ -16,7 +16,7 @@ import pytest
 import torch
 import yaml
 
-from conftest import BLOCK_STEPS, CASTLE, NUM_BLOCKS, free_port, requires_castle, run_dirs
+from conftest import BLOCK_STEPS, CASTLE, NUM_BLOCKS, free_port, ns_eval, requires_castle, run_dirs, sigkill_after_checkpoint
 from scalar_nerfstudio.blocks.split import load_blocks_json, split_cameras
 from scalar_nerfstudio.engine.trainer import latest_checkpoint_step
 from scalar_nerfstudio.method_configs import scalar_nerf
@@ -80,10 +80,7 @@ def test_full_run_writes_split_and_trains_every_block(full_run: Path, scene: Pat
 @pytest.mark.slow
 def test_ns_eval_fuses_the_blocks(full_run: Path, tmp_path: Path) -> None:
     output = tmp_path / "eval.json"
-    result = subprocess.run(
-        [sys.executable, "-m", "nerfstudio.scripts.eval", "--load-config", str(full_run / "config.yml"), "--output-path", str(output)],
-        capture_output=True, text=True, timeout=600,
-    )
+    result = ns_eval(full_run, output)
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     assert 5.0 < json.loads(output.read_text())["results"]["psnr"] < 60.0
 
@@ -224,10 +221,7 @@ def test_two_block_processes_at_once_then_assemble(full_run: Path, tmp_path: Pat
         assert torch.equal(state[key], block_state[key])
         assert not torch.equal(state[key], _pipeline_state(full_run)[key])
     output = tmp_path / "eval.json"
-    evaluation = subprocess.run(
-        [sys.executable, "-m", "nerfstudio.scripts.eval", "--load-config", str(assembled / "config.yml"), "--output-path", str(output)],
-        capture_output=True, text=True, timeout=600,
-    )
+    evaluation = ns_eval(assembled, output)
     assert evaluation.returncode == 0, evaluation.stdout[-3000:] + evaluation.stderr[-3000:]
 
 
@@ -262,23 +256,11 @@ def test_block_command_refuses_missing_block_and_unfinished_global(full_run: Pat
 
 @pytest.mark.slow
 def test_sigkilled_block_run_resumes_and_leaves_the_global_run_intact(full_run: Path, tmp_path: Path) -> None:
-    import signal
-    import time
-
     before = _digests(full_run)
     command = _block_command(full_run, 0, tmp_path)
     command[command.index("--pipeline.block-steps") + 1] = "400"
     process = subprocess.Popen([*command, "--steps-per-save", "2"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    deadline = time.time() + 600
-    step = None
-    while time.time() < deadline and process.poll() is None:
-        runs = run_dirs(tmp_path, method="scalar-nerf-block")
-        step = latest_checkpoint_step(runs[0] / "nerfstudio_models") if runs else None
-        if step is not None and step >= 4:
-            break
-        time.sleep(0.05)
-    process.send_signal(signal.SIGKILL)
-    process.wait()
+    step = sigkill_after_checkpoint(process, tmp_path, min_step=4, method="scalar-nerf-block")
     assert step is not None and step >= 4, "no checkpoint was written before the deadline"
     assert _digests(full_run) == before, "a killed block run must not touch the global run"
     (run,) = run_dirs(tmp_path, method="scalar-nerf-block")

@@ -15,7 +15,7 @@ import pytest
 import torch
 import yaml
 
-from conftest import CASTLE, TRAIN_STEPS, castle_args, free_port, ns_train_command, requires_castle, run_dirs
+from conftest import CASTLE, TRAIN_STEPS, castle_args, free_port, ns_train_command, requires_castle, run_dirs, sigkill_after_checkpoint
 from scalar_nerfstudio.engine.trainer import PARTIAL_SUFFIX, atomic_torch_save, latest_checkpoint_step
 
 
@@ -90,16 +90,7 @@ def test_resume_continues_at_saved_step_with_same_state(trained_castle_run: Path
 def test_sigkilled_training_resumes_in_the_same_run(tmp_path: Path) -> None:
     command = ns_train_command(CASTLE, tmp_path, "--max-num-iterations", "100000", "--steps-per-save", "3", *castle_args())
     process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    deadline = time.time() + 600
-    step = None
-    while time.time() < deadline and process.poll() is None:
-        runs = run_dirs(tmp_path)
-        step = latest_checkpoint_step(runs[0] / "nerfstudio_models") if runs else None
-        if step is not None and step >= 6:
-            break
-        time.sleep(0.05)
-    process.send_signal(signal.SIGKILL)
-    process.wait()
+    step = sigkill_after_checkpoint(process, tmp_path, min_step=6)
     assert step is not None and step >= 6, "no checkpoint was written before the deadline"
     (run,) = run_dirs(tmp_path)
     checkpoints = run / "nerfstudio_models"

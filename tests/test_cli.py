@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from conftest import free_port, run_dirs
+from conftest import free_port, ns_eval, run_dirs
 from scalar_nerfstudio.metrics import alexnet_weights_path
 
 
@@ -26,10 +26,7 @@ def test_ns_train_help(method: str) -> None:
 @pytest.mark.slow
 def test_ns_eval_reports_psnr_ssim_without_downloading(trained_castle_run: Path, tmp_path: Path) -> None:
     output = tmp_path / "eval.json"
-    result = subprocess.run(
-        [sys.executable, "-m", "nerfstudio.scripts.eval", "--load-config", str(trained_castle_run / "config.yml"), "--output-path", str(output)],
-        capture_output=True, text=True, timeout=600,
-    )
+    result = ns_eval(trained_castle_run, output)
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     metrics = json.loads(output.read_text())["results"]
     assert 5.0 < metrics["psnr"] < 60.0 and 0.0 < metrics["ssim"] <= 1.0

@@ -15,7 +15,6 @@ import pytest
 import torch
 
 from conftest import NUM_BLOCKS, free_port
-from scalar_nerfstudio.blocks.split import Block, BlockSplit
 from scalar_nerfstudio.blocks.visibility import aabb_in_frustum
 from scalar_nerfstudio.viewer import box_edges, fusion_options
 
@@ -139,7 +138,6 @@ def _settled(driver, viewport, timeout: float = 240.0) -> np.ndarray:
 def test_browser_shows_a_render_that_changes_with_fusion(full_run: Path) -> None:
     from selenium import webdriver
     from selenium.webdriver.chrome.service import Service
-    from selenium.webdriver.common.by import By
 
     port = free_port()
     viewer = subprocess.Popen(

@@ -133,6 +133,4 @@ def check_scene(
         num_eval = len(range(0, len(frames), eval_interval))
         if len(frames) - num_eval < 1:
             raise SceneError(f"{transforms}: {len(frames)} frame(s) with every {eval_interval}th held out for evaluation leaves no training image.")
-        if num_eval < 1:
-            raise SceneError(f"{transforms}: the eval split is empty.")
     return len(frames)

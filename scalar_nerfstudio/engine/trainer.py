@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import os
 import re
 from dataclasses import dataclass, field, replace
@@ -16,7 +15,7 @@ from nerfstudio.engine.optimizers import Optimizers
 from nerfstudio.engine.trainer import Trainer, TrainerConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from scalar_nerfstudio.blocks.split import format_split_table, save_blocks_json
+from scalar_nerfstudio.blocks.split import BlockSplitError, format_split_table, load_blocks_json, save_blocks_json
 from scalar_nerfstudio.data.validation import SceneError, check_scene
 from scalar_nerfstudio.engine.schedulers import WarmupExponentialDecaySchedulerConfig
 
@@ -170,7 +169,7 @@ class ScalarTrainer(Trainer):
         """Save model, optimizers, schedulers and scaler atomically; keep only the latest if configured."""
         self.checkpoint_dir.mkdir(parents=True, exist_ok=True)
         ckpt_path = self.checkpoint_dir / f"step-{step:09d}.ckpt"
-        pipeline = self.pipeline.module if hasattr(self.pipeline, "module") else self.pipeline
+        pipeline = self._pipeline()
         state = {
             "step": step,
             "pipeline": pipeline.state_dict(),
@@ -185,9 +184,9 @@ class ScalarTrainer(Trainer):
                     old.unlink()
 
 
-def _global_run_config_path(global_run: Path) -> Path:
+def run_config_path(run: Path) -> Path:
     """``config.yml`` of a run given as the file itself or its folder."""
-    path = Path(global_run)
+    path = Path(run)
     return path if path.suffix in (".yml", ".yaml") else path / "config.yml"
 
 
@@ -220,7 +219,7 @@ class ScalarBlockTrainerConfig(ScalarTrainerConfig):
     def _adopt_global_run(self) -> None:
         if self.global_run is None:
             raise SystemExit("scalar-nerf-block: --global-run is required (the folder of a trained `ns-train scalar-nerf` run).")
-        config_path = _global_run_config_path(self.global_run)
+        config_path = run_config_path(self.global_run)
         if not config_path.is_file():
             raise SystemExit(f"scalar-nerf-block: --global-run {self.global_run}: no config.yml there.")
         run_dir = config_path.parent
@@ -239,7 +238,10 @@ class ScalarBlockTrainerConfig(ScalarTrainerConfig):
                 f"scalar-nerf-block: the global phase of {run_dir} is not finished "
                 f"({done} of {global_pipeline.global_steps} steps checkpointed); train it first."
             )
-        num_blocks = len(json.loads(blocks_json.read_text())["blocks"])
+        try:
+            num_blocks = load_blocks_json(blocks_json)[0].num_blocks
+        except BlockSplitError as error:
+            raise SystemExit(f"scalar-nerf-block: {error}") from None
         if not 0 <= self.block < num_blocks:
             raise SystemExit(f"scalar-nerf-block: --block {self.block} does not exist; {blocks_json} has blocks 0..{num_blocks - 1}.")
         pipeline = self.pipeline

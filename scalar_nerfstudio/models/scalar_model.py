@@ -18,7 +18,6 @@ from typing import Dict, List, Literal, Optional, Tuple, Type
 
 import torch
 from nerfstudio.cameras.rays import RayBundle
-from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 from nerfstudio.models.base_model import Model, ModelConfig
 from torch import Tensor
 from torch.nn import Parameter
@@ -124,17 +123,8 @@ class ScalarModel(Model):
             "appearance": list(self.field.appearance.parameters()),
         }
 
-    def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
-        """Update the occupancy grid before training iterations."""
-        return [
-            TrainingCallback(
-                where_to_run=[TrainingCallbackLocation.BEFORE_TRAIN_ITERATION],
-                update_every_num_iters=1,
-                func=self._update_occupancy,
-            )
-        ]
-
     def _update_occupancy(self, step: int) -> None:
+        """Update the occupancy grid at ``step`` of this model's phase (the pipeline calls it before each step)."""
         self.occupancy.update(step, self._density_no_grad)
 
     @torch.no_grad()

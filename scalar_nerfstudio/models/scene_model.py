@@ -200,9 +200,8 @@ class ScalarSceneModel(Model):
         if mode.kind == "global-only":
             return []
         started = self.started_block_ids()
-        view_blocks = getattr(self, "_view_blocks", None)
-        if view_blocks is not None and mode.kind != "block":
-            started = [b for b in started if b in view_blocks]
+        if self._view_blocks is not None and mode.kind != "block":
+            started = [b for b in started if b in self._view_blocks]
         if mode.kind == "block":
             return [mode.block_index] if mode.block_index in started else []
         return started

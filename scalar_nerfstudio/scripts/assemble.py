@@ -20,7 +20,8 @@ import torch
 import tyro
 import yaml
 
-from scalar_nerfstudio.engine.trainer import atomic_torch_save, latest_checkpoint_step
+from scalar_nerfstudio.blocks.split import BlockSplitError, load_blocks_json
+from scalar_nerfstudio.engine.trainer import atomic_torch_save, latest_checkpoint_step, run_config_path
 
 MODEL_PREFIX = "_model."
 
@@ -31,8 +32,7 @@ class AssembleError(RuntimeError):
 
 def load_run(run: Path) -> Tuple[Path, object, Path]:
     """(run folder, its config, its newest checkpoint) for a run folder or its config.yml."""
-    run = Path(run)
-    config_path = run if run.suffix in (".yml", ".yaml") else run / "config.yml"
+    config_path = run_config_path(run)
     if not config_path.is_file():
         raise AssembleError(f"{run}: no config.yml (not a nerfstudio run folder)")
     config = yaml.load(config_path.read_text(), Loader=yaml.Loader)
@@ -43,12 +43,13 @@ def load_run(run: Path) -> Tuple[Path, object, Path]:
     return config_path.parent, config, checkpoint_dir / f"step-{step:09d}.ckpt"
 
 
-def _split_of(run_dir: Path) -> dict:
-    path = run_dir / "blocks.json"
-    if not path.is_file():
-        raise AssembleError(f"{run_dir}: blocks.json is missing")
-    data = json.loads(path.read_text())
-    return {"image_names": data["image_names"], "blocks": [b["image_indices"] for b in data["blocks"]]}
+def _split_of(run_dir: Path) -> Tuple[List[str], List[Tuple[int, ...]]]:
+    """(training image names, each block's image indices) of a run's blocks.json."""
+    try:
+        split, names = load_blocks_json(run_dir / "blocks.json")
+    except BlockSplitError as error:
+        raise AssembleError(f"{run_dir}: {error}") from None
+    return names, [block.image_indices for block in split.blocks]
 
 
 def merge_block_states(global_state: Dict[str, torch.Tensor], block_states: Dict[int, Dict[str, torch.Tensor]]) -> Dict[str, torch.Tensor]:
