@@ -11,7 +11,7 @@ from __future__ import annotations
 import gc
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import List, Literal, Optional, Tuple, Type
+from typing import Dict, List, Literal, Optional, Sequence, Tuple, Type
 
 import torch
 from nerfstudio.data.datamanagers.base_datamanager import DataManager
@@ -20,6 +20,7 @@ from nerfstudio.pipelines.base_pipeline import Pipeline, VanillaPipeline, Vanill
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch.cuda.amp.grad_scaler import GradScaler
 
+from scalar_nerfstudio.blocks.capacity import BlockCapacity, LayoutScale, auto_num_blocks, block_capacity, layout_scale
 from scalar_nerfstudio.blocks.split import BlockSplit, BlockSplitError, load_blocks_json, split_cameras
 from scalar_nerfstudio.data.datamanager import ScalarDataManagerConfig, camera_centres
 from scalar_nerfstudio.viewer import BlockOverlay, fusion_dropdown
@@ -54,8 +55,24 @@ class ScalarPipelineConfig(VanillaPipelineConfig):
     """Training/eval data (a block phase uses a copy restricted to the block's images)."""
     model: ScalarSceneModelConfig = field(default_factory=ScalarSceneModelConfig)
     """Model hyper-parameters, shared by the global and the local models, and the fusion."""
-    num_blocks: int = 4
-    """K: blocks the training images are split into (KMeans on camera centres)."""
+    num_blocks: Optional[int] = None
+    """K: blocks the training images are split into (KMeans on camera centres). None (default):
+    chosen from the camera layout, ceil(R^2 / T) for a layout R training pixels across and tables of
+    T rows (blocks/capacity.py); automatic K = 1 trains the global model only."""
+    max_auto_blocks: int = 8
+    """Upper bound of the automatic K."""
+    auto_min_images_per_block: int = 6
+    """The automatic K leaves at least this many training images per block."""
+    block_log2_hashmap_size: Optional[int] = None
+    """log2 table rows of every block model. None (default): per block, from its extent in pixels
+    and its images' pixel count, within block_log2_hashmap_bounds."""
+    block_log2_hashmap_bounds: Tuple[int, int] = (14, 19)
+    """Bounds of the automatic block table size (log2 rows)."""
+    block_max_resolution: Optional[int] = None
+    """Finest grid resolution of every block model. None (default): twice the block's extent in
+    pixels, within block_max_resolution_bounds."""
+    block_max_resolution_bounds: Tuple[int, int] = (64, 2048)
+    """Bounds of the automatic finest block resolution."""
     aabb_scale: Tuple[float, float, float] = (1.2, 1.2, 1.2)
     """s_AABB: per-axis scale of each block's camera AABB; images inside a scaled AABB join the
     block, so blocks overlap when > 1 (1.2 is the paper's best)."""
@@ -82,12 +99,13 @@ class ScalarPipelineConfig(VanillaPipelineConfig):
     blocks_json: Optional[Path] = None
     """Use this split (a run's blocks.json) instead of computing one (set by scalar-nerf-block)."""
 
-    def phases(self, num_blocks: int) -> List[Phase]:
-        """The training phases, in order, for a split into ``num_blocks`` blocks."""
+    def phases(self, num_blocks: int, train_blocks: Optional[bool] = None) -> List[Phase]:
+        """The training phases, in order, for a split into ``num_blocks`` blocks (``train_blocks``
+        overrides the config's, e.g. False when the automatic K is 1)."""
         if self.only_block is not None:
             return [Phase(self.only_block, 0, self.block_steps)]
         phases = [Phase(None, 0, self.global_steps)]
-        if self.train_blocks:
+        if self.train_blocks if train_blocks is None else train_blocks:
             phases += [Phase(k, self.global_steps + k * self.block_steps, self.block_steps) for k in range(num_blocks)]
         return phases
 
@@ -118,9 +136,20 @@ class ScalarPipeline(VanillaPipeline):
         self.datamanager.to(device)
         parsed = self.datamanager.train_dataparser_outputs
         self.image_names: List[str] = _image_names(parsed.image_filenames, config.datamanager.data)
+        self.layout_scale: LayoutScale = _layout_scale(parsed)
+        self.auto_num_blocks: Optional[int] = None
+        """The automatic K, when K was not given (and no split was)."""
+        if config.num_blocks is None and config.blocks_json is None and config.only_block is None:
+            self.auto_num_blocks = auto_num_blocks(
+                self.layout_scale, config.model.field.log2_hashmap_size, len(parsed.image_filenames),
+                config.auto_min_images_per_block, config.max_auto_blocks,
+            )
         self.split: BlockSplit = self._block_split(camera_centres(parsed).double().numpy())
-        self.phases: List[Phase] = config.phases(self.split.num_blocks)
-        block_ids = held_blocks(self.split, config.only_block)
+        # Automatic K = 1: one block would repeat the global model, so none is allocated or trained.
+        single_model = self.auto_num_blocks == 1
+        self.phases: List[Phase] = config.phases(self.split.num_blocks, train_blocks=False if single_model else None)
+        block_ids = () if single_model else held_blocks(self.split, config.only_block)
+        self.block_capacities: Dict[int, BlockCapacity] = self._block_capacities(parsed, block_ids)
         self._model = config.model.setup(
             scene_box=self.datamanager.train_dataset.scene_box,
             num_train_data=len(self.datamanager.train_dataset),
@@ -129,6 +158,7 @@ class ScalarPipeline(VanillaPipeline):
             grad_scaler=grad_scaler,
             split=self.split,
             block_ids=block_ids,
+            block_capacities=self.block_capacities,
             decoder_mode=config.decoder_mode,
         )
         self.model.to(device)
@@ -153,12 +183,30 @@ class ScalarPipeline(VanillaPipeline):
             return split
         return split_cameras(
             centres,
-            self.config.num_blocks,
+            self.config.num_blocks if self.auto_num_blocks is None else self.auto_num_blocks,
             aabb_scale=self.config.aabb_scale,
             seed=self.config.split_seed,
             min_images_per_block=self.config.min_images_per_block,
             min_overlap_images=self.config.min_overlap_images,
         )
+
+    def _block_capacities(self, parsed, block_ids: Sequence[int]) -> Dict[int, BlockCapacity]:
+        """Table size and finest resolution of each held block (automatic unless set in the config)."""
+        cameras = parsed.cameras
+        pixels = (cameras.width * cameras.height).reshape(-1).tolist()
+        capacities = {}
+        for index in block_ids:
+            block = self.split.blocks[index]
+            extent = max(hi - lo for lo, hi in zip(block.aabb_min, block.aabb_max))
+            auto = block_capacity(
+                self.layout_scale, extent, int(sum(pixels[i] for i in block.image_indices)),
+                self.config.block_log2_hashmap_bounds, self.config.block_max_resolution_bounds,
+            )
+            capacities[index] = BlockCapacity(
+                log2_hashmap_size=auto.log2_hashmap_size if self.config.block_log2_hashmap_size is None else self.config.block_log2_hashmap_size,
+                max_resolution=auto.max_resolution if self.config.block_max_resolution is None else self.config.block_max_resolution,
+            )
+        return capacities
 
     def _load_global_model(self, checkpoint: Path, device: str) -> None:
         """Load the global model's weights (only those) from another run's checkpoint."""
@@ -244,6 +292,12 @@ class ScalarPipeline(VanillaPipeline):
             else:
                 templates[group] = (group, phase_of_block.get(None))
         return templates
+
+
+def _layout_scale(parsed) -> LayoutScale:
+    """:class:`LayoutScale` of the parsed training cameras (optical axis: -z of the OpenGL pose)."""
+    poses = parsed.cameras.camera_to_worlds.double()
+    return layout_scale(poses[:, :3, 3].numpy(), (-poses[:, :3, 2]).numpy(), parsed.cameras.fx.reshape(-1).double().numpy())
 
 
 def _image_names(filenames: List[Path], data: Optional[Path]) -> List[str]:

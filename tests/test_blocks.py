@@ -272,3 +272,22 @@ def test_sigkilled_block_run_resumes_and_leaves_the_global_run_intact(full_run: 
     assert run_dirs(tmp_path, method="scalar-nerf-block") == [run], "the resumed block run continues in its folder"
     assert latest_checkpoint_step(run / "nerfstudio_models") == killed_at + 3
     assert _digests(full_run) == before
+
+
+@pytest.mark.slow
+def test_block_run_takes_unset_block_settings_from_the_global_run(full_run: Path) -> None:
+    """``scalar-nerf-block`` without --pipeline.block-steps trains as many steps as the global run's
+    blocks did (not the method default), with its ray batch; explicit values win."""
+    from scalar_nerfstudio.method_configs import scalar_nerf_block
+
+    config = copy.deepcopy(scalar_nerf_block.config)
+    config.global_run = full_run
+    config._adopt_global_run()
+    assert config.pipeline.block_steps == BLOCK_STEPS
+    assert config.pipeline.datamanager.train_num_rays_per_batch == 512
+    explicit = copy.deepcopy(scalar_nerf_block.config)
+    explicit.global_run = full_run
+    explicit.pipeline.block_steps = 7
+    explicit.pipeline.decoder_mode = "frozen"
+    explicit._adopt_global_run()
+    assert explicit.pipeline.block_steps == 7 and explicit.pipeline.decoder_mode == "frozen"

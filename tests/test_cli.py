@@ -80,3 +80,21 @@ def test_ci_runs_the_readme_test_command() -> None:
     readme = (repo / "README.md").read_text()
     assert "python -m pytest" in extracted
     assert extracted in readme.split("<!-- test command -->", 1)[1].split("```", 2)[1]
+
+
+def test_ns_train_with_nerfstudio_default_step_log(scene: Path, tmp_path: Path) -> None:
+    """Plain ``ns-train scalar-nerf`` with nerfstudio's step log on (its default; the other tests
+    turn it off): the log's % done and ETA divide by the total steps, which only the phases know."""
+    from conftest import TINY
+
+    command = [
+        sys.executable, "-m", "nerfstudio.scripts.train", "scalar-nerf", "--data", str(scene),
+        "--output-dir", str(tmp_path), "--viewer.websocket-port", str(free_port()),
+        "--viewer.quit-on-train-completion", "True", "--logging.steps-per-log", "5",
+        *TINY, "--pipeline.global-steps", "12", "--pipeline.block-steps", "4",
+    ]
+    result = subprocess.run(command, capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    assert "ZeroDivisionError" not in result.stdout + result.stderr
+    (run,) = run_dirs(tmp_path)
+    assert sorted(p.name for p in (run / "nerfstudio_models").glob("step-*.ckpt"))[-1] == "step-000000019.ckpt"

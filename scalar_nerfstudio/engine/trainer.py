@@ -13,10 +13,12 @@ import yaml
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 from nerfstudio.engine.optimizers import Optimizers
 from nerfstudio.engine.trainer import Trainer, TrainerConfig
+from nerfstudio.utils import writer
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from scalar_nerfstudio.blocks.split import BlockSplitError, format_split_table, load_blocks_json, save_blocks_json
 from scalar_nerfstudio.data.validation import SceneError, check_scene
+from scalar_nerfstudio.engine.report import format_report, scene_model_report, write_report
 from scalar_nerfstudio.engine.schedulers import WarmupExponentialDecaySchedulerConfig
 
 CHECKPOINT_PATTERN = re.compile(r"^step-(\d{9})\.ckpt$")
@@ -97,6 +99,9 @@ class ScalarTrainer(Trainer):
         total = getattr(pipeline, "total_steps", None)
         if total is not None and self.config.max_num_iterations <= 0:
             self.config.max_num_iterations = total
+        # nerfstudio's step log (ETA, % done) was set up in Trainer.__init__, before the phases were
+        # known, with max_num_iterations 0 (= every phase): give it the real total.
+        writer.GLOBAL_BUFFER["max_iter"] = self.config.max_num_iterations
         if hasattr(pipeline, "split") and test_mode == "val":
             self._report_split(pipeline)
 
@@ -107,6 +112,16 @@ class ScalarTrainer(Trainer):
         """Save the block split as blocks.json in the run folder and print it with the phases."""
         save_blocks_json(pipeline.split, self.base_dir / "blocks.json", pipeline.image_names)
         CONSOLE.print(format_split_table(pipeline.split, pipeline.image_names))
+        scale = pipeline.layout_scale
+        if pipeline.auto_num_blocks is not None:
+            CONSOLE.print(
+                f"automatic K = {pipeline.auto_num_blocks}: the camera layout is {scale.pixels_across(scale.extent):.0f} training "
+                f"pixels across at the viewing distance (R^2 / T = {scale.pixels_across(scale.extent) ** 2 / 2 ** pipeline.config.model.field.log2_hashmap_size:.2f}"
+                f" for T = 2^{pipeline.config.model.field.log2_hashmap_size})"
+                + ("; one model suffices, no block is trained" if pipeline.auto_num_blocks == 1 else "")
+            )
+        for index, capacity in pipeline.block_capacities.items():
+            CONSOLE.print(f"block {index}: table 2^{capacity.log2_hashmap_size}, finest resolution {capacity.max_resolution}")
         phases = ", ".join(f"{p.name}: steps {p.start_step}-{p.end_step - 1}" for p in pipeline.phases if p.num_steps > 0)
         CONSOLE.print(f"phases: {phases}; split saved to {self.base_dir / 'blocks.json'}")
 
@@ -164,6 +179,18 @@ class ScalarTrainer(Trainer):
             super().train()
         finally:
             self.config.max_num_iterations = total
+        self._report_models()
+
+    def _report_models(self) -> None:
+        """Print and save (model_report.json) every model's parameters, table size and memory."""
+        pipeline = self._pipeline()
+        if not hasattr(pipeline.model, "global_model"):
+            return
+        report = scene_model_report(pipeline.model, self.optimizers.optimizers.values(), self.device)
+        extra = {"auto_num_blocks": getattr(pipeline, "auto_num_blocks", None)}
+        write_report(report, self.base_dir / "model_report.json", extra)
+        CONSOLE.print(format_report(report))
+        CONSOLE.print(f"model report saved to {self.base_dir / 'model_report.json'}")
 
     def save_checkpoint(self, step: int) -> None:
         """Save model, optimizers, schedulers and scaler atomically; keep only the latest if configured."""
@@ -251,6 +278,17 @@ class ScalarBlockTrainerConfig(ScalarTrainerConfig):
         pipeline.num_blocks, pipeline.aabb_scale = global_pipeline.num_blocks, global_pipeline.aabb_scale
         pipeline.split_seed = global_pipeline.split_seed
         pipeline.min_overlap_images = global_pipeline.min_overlap_images
+        for name in ("block_log2_hashmap_size", "block_log2_hashmap_bounds", "block_max_resolution", "block_max_resolution_bounds"):
+            setattr(pipeline, name, getattr(global_pipeline, name, getattr(pipeline, name)))
+        # Block settings left at the method's defaults follow the global run (an explicit value wins).
+        from scalar_nerfstudio.method_configs import scalar_nerf_block  # the method defaults (import cycle at module level)
+
+        defaults = scalar_nerf_block.config.pipeline
+        for name in ("block_steps", "decoder_mode"):
+            if getattr(pipeline, name) == getattr(defaults, name):
+                setattr(pipeline, name, getattr(global_pipeline, name))
+        if pipeline.datamanager.train_num_rays_per_batch == defaults.datamanager.train_num_rays_per_batch:
+            pipeline.datamanager.train_num_rays_per_batch = global_pipeline.datamanager.train_num_rays_per_batch
         pipeline.only_block = self.block
         pipeline.blocks_json = blocks_json.resolve()
         pipeline.global_checkpoint = (checkpoint_dir / f"step-{step:09d}.ckpt").resolve()

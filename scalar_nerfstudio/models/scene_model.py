@@ -8,7 +8,7 @@ global model and the blocks that have started training, and fuses them per pixel
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Dict, List, Literal, Optional, Sequence, Tuple, Type
 
 import torch
@@ -18,6 +18,7 @@ from nerfstudio.models.base_model import Model
 from torch import Tensor, nn
 from torch.nn import Parameter
 
+from scalar_nerfstudio.blocks.capacity import BlockCapacity
 from scalar_nerfstudio.blocks.split import Block, BlockSplit
 from scalar_nerfstudio.blocks.visibility import aabb_in_frustum
 from scalar_nerfstudio.fusion import ParsedFusionMode, fuse_outputs, nearest_block, parse_fusion_mode
@@ -62,6 +63,8 @@ class ScalarSceneModel(Model):
         split: the :class:`BlockSplit` of the training images (indices into them).
         block_ids: which blocks this model holds (all of them, or one in a ``scalar-nerf-block`` run).
         block_num_images: images per held block (sizes its appearance embedding).
+        block_capacities: {k: BlockCapacity} table size and finest resolution of block k's model
+            (default: the config's field settings).
         decoder_mode: ``finetune`` / ``frozen`` (start from the global decoder) or ``independent``.
     """
 
@@ -85,11 +88,12 @@ class ScalarSceneModel(Model):
         self.rendered_models: set = set()
         """Models (block indices, "global") rendered since the last camera started (for reports)."""
         self.global_model = ScalarModel(config=self.config, scene_box=self.scene_box, num_train_data=self.num_train_data)
+        capacities: Dict[int, BlockCapacity] = self.kwargs.get("block_capacities") or {}
         blocks = {}
         for index in self.block_ids:
             centre, radius = block_region(self.split.blocks[index])
             blocks[str(index)] = ScalarModel(
-                config=self.config, scene_box=self.scene_box, num_train_data=num_images[index],
+                config=self._block_config(capacities.get(index)), scene_box=self.scene_box, num_train_data=num_images[index],
                 region_centre=centre, region_radius=radius,
             )
             if self.decoder_mode == "frozen":
@@ -100,6 +104,13 @@ class ScalarSceneModel(Model):
         self.register_buffer(
             "block_centres", torch.tensor([b.centre for b in self.split.blocks], dtype=torch.float32), persistent=False
         )
+
+    def _block_config(self, capacity: Optional[BlockCapacity]) -> ScalarModelConfig:
+        """The model config of a block: the shared one, with the block's table size and resolution."""
+        if capacity is None:
+            return self.config
+        field_config = replace(self.config.field, log2_hashmap_size=capacity.log2_hashmap_size, max_resolution=capacity.max_resolution)
+        return replace(self.config, field=field_config)
 
     # ------------------------------------------------------------------------------ phases
     def phase_model(self, block: Optional[int]) -> ScalarModel:

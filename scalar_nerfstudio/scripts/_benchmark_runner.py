@@ -1,0 +1,184 @@
+"""One variant of ``scalar-nerf-benchmark``, in its own process: train, evaluate along the way, report.
+
+    python -m scalar_nerfstudio.scripts._benchmark_runner SPEC.json
+
+SPEC (written by the benchmark) holds: ``method`` ("scalar-nerf" or "nerfacto"), ``data``,
+``downscale``, ``overrides`` (dotted trainer-config attributes -> values), ``eval_steps`` (evaluate
+after these step counts), ``eval_at_end``, ``time_limit_s`` (stop training after this much training
+wall-clock; 0: none), ``fusions`` (fusion modes to evaluate at the end; the first is the run's),
+``output_dir``, ``result`` (where to write the JSON), ``keep_checkpoint``.
+
+Training time excludes evaluation. Lines ``PROGRESS <done> <total>`` on stdout drive the
+benchmark's progress bar.
+"""
+
+from __future__ import annotations
+
+import json
+import resource
+import sys
+import time
+from copy import deepcopy
+from pathlib import Path
+from typing import Any, Dict, List
+
+import torch
+
+
+def _disable_lpips() -> None:
+    """nerfacto builds LPIPS, which downloads AlexNet weights: offline that dies, so stub it out."""
+    import torchmetrics.image.lpip as lpip
+
+    class NoLPIPS(torch.nn.Module):
+        def __init__(self, *args, **kwargs) -> None:
+            super().__init__()
+
+        def forward(self, *args, **kwargs) -> torch.Tensor:
+            return torch.tensor(float("nan"))
+
+    lpip.LearnedPerceptualImagePatchSimilarity = NoLPIPS
+
+
+def _set(config: Any, dotted: str, value: Any) -> None:
+    """Set ``config.a.b.c = value`` for ``dotted == "a.b.c"`` (lists become tuples)."""
+    *parents, name = dotted.split(".")
+    target = config
+    for part in parents:
+        target = getattr(target, part)
+    if not hasattr(target, name):
+        raise AttributeError(f"benchmark override {dotted!r}: {type(target).__name__} has no attribute {name!r}")
+    setattr(target, name, tuple(value) if isinstance(value, list) else value)
+
+
+def _config(spec: Dict[str, Any]):
+    from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
+
+    if spec["method"] == "nerfacto":
+        _disable_lpips()
+        from nerfstudio.configs.method_configs import all_methods
+
+        config = deepcopy(all_methods["nerfacto"])
+        config.pipeline.model.implementation = "torch"
+        config.machine.device_type = "cuda" if torch.cuda.is_available() else "cpu"
+        config.mixed_precision = torch.cuda.is_available()
+    else:
+        from scalar_nerfstudio.method_configs import scalar_nerf
+
+        config = deepcopy(scalar_nerf.config)
+    config.pipeline.datamanager.data = Path(spec["data"])
+    config.pipeline.datamanager.dataparser = NerfstudioDataParserConfig(
+        downscale_factor=spec["downscale"], eval_mode="interval", eval_interval=8
+    )
+    config.vis = "tensorboard"
+    config.logging.local_writer.enable = False
+    config.steps_per_eval_batch = config.steps_per_eval_image = config.steps_per_eval_all_images = 10**9
+    config.steps_per_save = 10**9
+    config.output_dir = Path(spec["output_dir"])
+    for key, value in spec.get("overrides", {}).items():
+        _set(config, key, value)
+    return config
+
+
+def _evaluate(pipeline) -> Dict[str, float]:
+    """Mean PSNR / SSIM (/ LPIPS) over the eval images, and render ms per image."""
+    pipeline.eval()
+    start = time.perf_counter()
+    metrics = pipeline.get_average_eval_image_metrics()
+    count = max(len(pipeline.datamanager.fixed_indices_eval_dataloader), 1)
+    ms = 1000.0 * (time.perf_counter() - start) / count
+    pipeline.train()
+    result = {"psnr": float(metrics["psnr"]), "ssim": float(metrics["ssim"]), "render_ms_per_image": ms}
+    if "lpips" in metrics and metrics["lpips"] == metrics["lpips"]:
+        result["lpips"] = float(metrics["lpips"])
+    return result
+
+
+def _trained_modules(model) -> List[torch.nn.Module]:
+    """The models a run trained: the global model and the started blocks (a global-only run still
+    allocates unstarted block tables for later ``scalar-nerf-block`` runs; they are not counted)."""
+    if not hasattr(model, "global_model"):
+        return [model]
+    return [model.global_model, *(model.blocks[str(k)] for k in model.started_block_ids())]
+
+
+def run(spec: Dict[str, Any]) -> Dict[str, Any]:
+    """Train and evaluate one variant as ``spec`` says; returns the result written to ``spec["result"]``."""
+    config = _config(spec)
+    config.set_timestamp()
+    config.save_config()
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    if not spec.get("keep_checkpoint", False):  # no checkpoint writes inside the timed steps
+        trainer.save_checkpoint = lambda step: None
+    pipeline = trainer.pipeline
+    total = int(getattr(pipeline, "total_steps", config.max_num_iterations))
+    if config.max_num_iterations > 0:
+        total = min(total, config.max_num_iterations) if hasattr(pipeline, "total_steps") else config.max_num_iterations
+    eval_steps = {int(s) for s in spec.get("eval_steps", []) if 0 < int(s) <= total}
+    time_limit = float(spec.get("time_limit_s", 0.0))
+    curve: List[Dict[str, float]] = []
+    clock = {"train_s": 0.0, "steps": 0}
+    iteration = trainer.train_iteration
+
+    def timed_iteration(step: int):
+        start = time.perf_counter()
+        result = iteration(step)
+        clock["train_s"] += time.perf_counter() - start
+        clock["steps"] += 1
+        done = clock["steps"]
+        if time_limit > 0:
+            print(f"PROGRESS {min(clock['train_s'], time_limit):.0f} {time_limit:.0f}", flush=True)
+        else:
+            print(f"PROGRESS {done} {total}", flush=True)
+        out_of_time = time_limit > 0 and clock["train_s"] >= time_limit
+        if done in eval_steps or out_of_time:
+            curve.append({"step": done, "train_s": clock["train_s"], **_evaluate(pipeline)})
+        if out_of_time:
+            trainer.stop_training = True
+        return result
+
+    trainer.train_iteration = timed_iteration
+    trainer.train()
+    if spec.get("eval_at_end", True) and (not curve or curve[-1]["step"] != clock["steps"]):
+        curve.append({"step": clock["steps"], "train_s": clock["train_s"], **_evaluate(pipeline)})
+    finals: Dict[str, Dict[str, float]] = {}
+    fusions = spec.get("fusions") or []
+    for index, mode in enumerate(fusions):
+        if index == 0:
+            finals[mode] = {k: v for k, v in curve[-1].items() if k not in ("step", "train_s")}
+            continue
+        pipeline.model.set_fusion(mode)
+        finals[mode] = _evaluate(pipeline)
+    model = pipeline.model
+    trained = _trained_modules(model)
+    parameters = sum(p.numel() for m in trained for p in m.parameters())
+    rays = pipeline.datamanager.get_train_rays_per_batch()
+    result = {
+        "name": spec["name"],
+        "method": spec["method"],
+        "steps": clock["steps"],
+        "train_s": clock["train_s"],
+        "train_rays_per_s": clock["steps"] * rays / max(clock["train_s"], 1e-9),
+        "curve": curve,
+        "final": curve[-1] if curve else {},
+        "fusions": finals,
+        "parameters": parameters,
+        "parameter_mib": sum(p.numel() * p.element_size() for m in trained for p in m.parameters()) / 2**20,
+        "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+        "threads": torch.get_num_threads(),
+        "run_dir": str(trainer.base_dir),
+    }
+    if hasattr(pipeline, "auto_num_blocks"):
+        started = model.started_block_ids()
+        result["num_blocks"] = len(started)
+        result["block_tables"] = {str(k): int(model.blocks[str(k)].field.config.log2_hashmap_size) for k in started}
+    Path(spec["result"]).write_text(json.dumps(result, indent=2))
+    return result
+
+
+def main() -> None:
+    run(json.loads(Path(sys.argv[1]).read_text()))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,82 @@
+"""``scalar-nerf-benchmark --quick``: the speed-against-error harness end to end (not its numbers)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from scalar_nerfstudio.scripts.benchmark import BenchmarkConfig, _on_front, plan
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.mark.slow
+def test_quick_benchmark_end_to_end(tmp_path: Path) -> None:
+    """Global phase, one model, blocks with three fusions, and nerfacto (offline, no LPIPS) on the
+    synthetic scene: table, JSON, curves and the three plots."""
+    output = tmp_path / "bench"
+    result = subprocess.run(
+        ["scalar-nerf-benchmark", "--quick", "--output-dir", str(output), "--variants", "ngp19", "scalar", "nerfacto"],
+        capture_output=True, text=True, timeout=900,
+    )
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    report = json.loads((output / "results.json").read_text())
+    labels = {row["label"] for row in report["rows"]}
+    assert labels == {
+        "NGP_19 (one model, 2^19)", "SCALAR-NeRF (blocks + global fusion)", "blocks + IDW (same models)",
+        "blocks + nearest (same models)", "nerfacto (torch), same wall-clock",
+    }
+    results = report["results"]
+    scalar, ngp, global_phase = results["scalar"], results["ngp19"], results["global"]
+    # Equal step budgets; the block variant includes the global phase it started from, in time and curve.
+    assert scalar["steps"] == ngp["steps"] == 32 and global_phase["steps"] == 20
+    assert scalar["curve"][: len(global_phase["curve"])] == global_phase["curve"]
+    assert scalar["train_s"] > global_phase["train_s"]
+    for name in ("scalar", "ngp19"):
+        steps = [p["step"] for p in results[name]["curve"]]
+        times = [p["train_s"] for p in results[name]["curve"]]
+        assert steps == [10, 20, 30, 32], f"{name}: evaluated every 10 steps and at the end"
+        assert times == sorted(times) and all(5 < p["psnr"] < 60 for p in results[name]["curve"])
+    assert scalar["num_blocks"] == 2 and scalar["parameters"] > ngp["parameters"]
+    # nerfacto ran for the wall-clock the block variant took, and has no LPIPS (needs a download).
+    nerfacto = results["nerfacto"]
+    assert nerfacto["train_s"] >= scalar["train_s"] and "lpips" not in nerfacto["final"]
+    for row in report["rows"]:
+        assert row["render_ms_per_image"] > 0 and row["peak_rss_mib"] > 100 and row["train_rays_per_s"] > 0
+    table = (output / "results.md").read_text()
+    assert "| SCALAR-NeRF (blocks + global fusion) | global | 32 |" in table
+    for name in ("psnr_vs_time.png", "psnr_vs_render_time.png", "psnr_vs_parameters.png"):
+        data = (output / name).read_bytes()
+        assert data.startswith(PNG_SIGNATURE) and len(data) > 5000, name
+
+
+def test_plan_and_budgets(tmp_path: Path) -> None:
+    """Every block variant starts from the one global phase; budgets are equal; unknown names fail."""
+    config = BenchmarkConfig(data=tmp_path, global_steps=400, block_steps=100, num_blocks=4,
+                             variants=("ngp19", "ngp21", "scalar", "scalar-wo-sd", "scalar-wo-ft", "scalar-s1.0"))
+    variants, _ = plan(config)
+    by_name = {v.name: v for v in variants}
+    assert list(by_name)[0] == "global" and by_name["global"].overrides["pipeline.global_steps"] == 400
+    assert by_name["ngp19"].overrides["pipeline.global_steps"] == 800 == 400 + 4 * 100
+    assert by_name["ngp21"].overrides["pipeline.model.field.log2_hashmap_size"] == 21
+    for name in ("scalar", "scalar-wo-sd", "scalar-wo-ft", "scalar-s1.0"):
+        assert by_name[name].base == "global" and by_name[name].overrides["pipeline.global_steps"] == 0
+        assert by_name[name].overrides["pipeline.block_log2_hashmap_size"] == 19
+    assert by_name["scalar-wo-sd"].overrides["pipeline.decoder_mode"] == "independent"
+    assert by_name["scalar-wo-ft"].overrides["pipeline.decoder_mode"] == "frozen"
+    assert by_name["scalar-s1.0"].overrides["pipeline.aabb_scale"] == [1.0, 1.0, 1.0]
+    with pytest.raises(SystemExit, match="unknown variant"):
+        plan(BenchmarkConfig(data=tmp_path, variants=("ngp18",)))
+
+
+def test_pareto_front() -> None:
+    rows = [
+        {"psnr": 20.0, "parameters": 10, "train_s": 5},
+        {"psnr": 21.0, "parameters": 20, "train_s": 5},
+        {"psnr": 19.0, "parameters": 30, "train_s": 9},
+    ]
+    assert [_on_front(r, rows, "parameters") for r in rows] == [True, True, False]
+    assert [_on_front(r, rows, "train_s") for r in rows] == [False, True, False]

@@ -1,0 +1,253 @@
+"""``scalar-nerf-train-blocks``: every block of a global run trained in parallel (local pool or Ray),
+a failed attempt retried in a fresh folder and kept apart, finished blocks skipped on a re-run, and
+the result assembled into a run that ``ns-eval`` fuses."""
+
+from __future__ import annotations
+
+import copy
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import List
+
+import numpy as np
+import psutil
+import pytest
+import torch
+import yaml
+
+from conftest import TINY, ns_eval, ns_train_command, run_dirs
+from scalar_nerfstudio.blocks.split import save_blocks_json, split_cameras
+from scalar_nerfstudio.engine.trainer import latest_checkpoint_step
+from scalar_nerfstudio.scripts import train_blocks
+from scalar_nerfstudio.scripts.train_blocks import (
+    DONE_MARKER, GlobalRun, LocalExecutor, block_command, default_cpus_per_block, main, prepare_blocks, thread_env, write_done,
+)
+
+BLOCK_STEPS = 8  # per block in these tests: the time goes into starting the processes, not training
+
+
+def _state(run: Path):
+    step = latest_checkpoint_step(run / "nerfstudio_models")
+    return torch.load(run / "nerfstudio_models" / f"step-{step:09d}.ckpt", map_location="cpu", weights_only=True)["pipeline"]
+
+
+def _done_run(out: Path, block: int) -> Path:
+    done = json.loads((out / f"block{block}" / DONE_MARKER).read_text())
+    return out / f"block{block}" / done["run"]
+
+
+# ------------------------------------------------------------------ quick: no training
+
+
+@pytest.fixture
+def fake_global_run(scene: Path, tmp_path: Path) -> Path:
+    """A folder that looks like a finished ``scalar-nerf`` global run (config, blocks.json, a checkpoint
+    at the last global step) without training one: enough for the command's checks."""
+    from scalar_nerfstudio.method_configs import scalar_nerf
+
+    run = tmp_path / "out" / "scene" / "scalar-nerf" / "fake"
+    (run / "nerfstudio_models").mkdir(parents=True)
+    config = copy.deepcopy(scalar_nerf.config)
+    config.data = config.pipeline.datamanager.data = scene
+    config.pipeline.num_blocks = 2
+    (run / "config.yml").write_text(yaml.dump(config))
+    names = [f"images/frame_{i:05d}.png" for i in range(12)]
+    centres = np.stack([np.linspace(-1, 1, 12), np.zeros(12), np.zeros(12)], axis=1)
+    save_blocks_json(split_cameras(centres, 2, (1.2, 1.2, 1.2)), run / "blocks.json", names)
+    (run / "nerfstudio_models" / f"step-{config.pipeline.global_steps - 1:09d}.ckpt").touch()
+    return run
+
+
+def _error(capsys, argv: List[str]) -> str:
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1, err
+    return err
+
+
+def test_clear_errors(fake_global_run: Path, tmp_path: Path, capsys, monkeypatch) -> None:
+    assert "no config.yml" in _error(capsys, [str(tmp_path / "nothing")])
+    assert "block 7 does not exist" in _error(capsys, [str(fake_global_run), "--blocks", "0", "7"])
+    unfinished = tmp_path / "unfinished"
+    (unfinished / "nerfstudio_models").mkdir(parents=True)
+    for name in ("config.yml", "blocks.json"):
+        (unfinished / name).write_text((fake_global_run / name).read_text())
+    (unfinished / "nerfstudio_models" / "step-000000010.ckpt").touch()
+    err = _error(capsys, [str(unfinished)])
+    assert "global phase" in err and "not finished" in err
+    err = _error(capsys, [str(fake_global_run), "--", "--pipeline.block-steps", "3"])
+    assert "--block-steps" in err
+    monkeypatch.setitem(sys.modules, "ray", None)  # as if Ray were not installed
+    assert "pip install 'scalar-nerfstudio[distributed]'" in _error(capsys, [str(fake_global_run), "--executor", "ray"])
+    assert not (tmp_path / "out" / "scene" / "scalar-nerf" / "fake-blocks").exists(), "nothing is written on an error"
+
+
+def test_threads_and_pool_size_do_not_oversubscribe() -> None:
+    assert default_cpus_per_block(2, 2) == 1
+    assert default_cpus_per_block(16, 4) == 4
+    assert default_cpus_per_block(2, 5) == 1
+    assert default_cpus_per_block(32, 3, node_cpus=16) == 10
+    env = thread_env(3, 0)
+    assert env["OMP_NUM_THREADS"] == env["MKL_NUM_THREADS"] == "3" and env["CUDA_VISIBLE_DEVICES"] == ""
+    assert "CUDA_VISIBLE_DEVICES" not in thread_env(3, 1)  # Ray assigns the GPU
+    assert LocalExecutor(2, 1, 0).slots == 2
+    assert LocalExecutor(2, 2, 0).slots == 1
+    assert LocalExecutor(8, 3, 0).slots == 2
+    run = GlobalRun(Path("/runs/g"), 2, Path("/runs/g/nerfstudio_models/step-000000039.ckpt"), 15, ["--pipeline.decoder-mode", "frozen"])
+    command = block_command(run, 1, Path("/o/block1/attempt-3"), 0, None, ["--steps-per-save", "4"])
+    assert command[:5] == ["scalar-nerf-block", "--global-run", "/runs/g", "--block", "1"]
+    assert command[command.index("--pipeline.block-steps") + 1] == "15" and command[command.index("--max-num-iterations") + 1] == "15"
+    assert "--machine.device-type" in command and command[-2:] == ["--steps-per-save", "4"]
+    command = block_command(run, 1, Path("/o"), 1, 6, [])
+    assert command[command.index("--pipeline.block-steps") + 1] == "6" and "--machine.device-type" not in command
+
+
+def test_skip_done_set_aside_leftovers_and_stale(tmp_path: Path, capsys) -> None:
+    checkpoint = Path("/runs/g/nerfstudio_models/step-000000039.ckpt")
+    done_run = tmp_path / "block0" / "attempt-2" / "scene" / "scalar-nerf-block" / "t-block0"
+    done_run.mkdir(parents=True)
+    (done_run / "config.yml").touch()
+    (tmp_path / "block0" / "failed-attempt-1").mkdir()
+    write_done(tmp_path / "block0", done_run, 2, 12.0, checkpoint)
+    (tmp_path / "block1" / "attempt-1").mkdir(parents=True)  # left by a killed command
+    states = prepare_blocks(tmp_path, [0, 1], checkpoint)
+    assert states[0].status.startswith("skipped") and states[0].run == done_run
+    assert states[1].status == "pending" and states[1].next_attempt == 2
+    assert (tmp_path / "block1" / "interrupted-attempt-1").is_dir() and not (tmp_path / "block1" / "attempt-1").exists()
+    # the global run trained on: block 0's result is set aside and trained again
+    states = prepare_blocks(tmp_path, [0], Path("/runs/g/nerfstudio_models/step-000000099.ckpt"))
+    assert states[0].status == "pending" and states[0].next_attempt == 3
+    assert (tmp_path / "block0" / "stale-attempt-2").is_dir() and not (tmp_path / "block0" / DONE_MARKER).exists()
+    assert "training again" in capsys.readouterr().out
+
+
+# ------------------------------------------------------------- end to end (tiny runs)
+
+
+@pytest.fixture(scope="module")
+def global_run(scene: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A tiny ``scalar-nerf`` run trained through its global phase only (2 blocks in blocks.json)."""
+    output_dir = tmp_path_factory.mktemp("global_only")
+    result = subprocess.run(ns_train_command(scene, output_dir, *TINY, "--pipeline.train-blocks", "False"),
+                            capture_output=True, text=True, timeout=900)
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    (run,) = run_dirs(output_dir)
+    return run
+
+
+def _block_processes(out: Path, block: int, attempt: int) -> List[psutil.Process]:
+    """The ``ns-train scalar-nerf-block`` processes training ``block``'s attempt ``attempt`` under ``out``."""
+    folder = str(out / f"block{block}" / f"attempt-{attempt}")
+    found = []
+    for process in psutil.process_iter(["cmdline"]):
+        cmdline = process.info["cmdline"] or []
+        if "scalar-nerf-block" in cmdline and folder in cmdline:
+            found.append(process)
+    return found
+
+
+def _ray_processes(since: float) -> List[str]:
+    left = []
+    for process in psutil.process_iter(["cmdline", "create_time"]):
+        cmdline = " ".join(process.info["cmdline"] or [])
+        if process.info["create_time"] >= since and ("raylet" in cmdline or "gcs_server" in cmdline or cmdline.startswith("ray::")):
+            left.append(cmdline[:120])
+    return left
+
+
+@pytest.mark.slow
+def test_ray_trains_blocks_in_parallel_retries_a_killed_one_and_fuses(global_run: Path, tmp_path: Path) -> None:
+    """A real local Ray cluster with 2 CPUs trains the 2 blocks at once, one task each.
+
+    Block 1's first attempt is failed from outside, as a crash would: once its ``ns-train`` process
+    has written its run folder, the test SIGKILLs the Ray worker running that task (the block process
+    dies with it). The command must retry block 1 in a fresh folder, keep the partial attempt apart,
+    and assemble the two good results.
+    """
+    out = tmp_path / "blocks"
+    command = ["scalar-nerf-train-blocks", str(global_run), "--executor", "ray", "--num-cpus", "2", "--cpus-per-block", "1",
+               "--block-steps", str(BLOCK_STEPS), "--output-dir", str(out), "--", "--steps-per-save", "4"]
+    started = time.time()
+    log_path = tmp_path / "command.log"
+    with open(log_path, "w") as log:
+        process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, text=True)
+        killed = both_at_once = False
+        deadline = time.time() + 600
+        while process.poll() is None and time.time() < deadline and not killed:
+            victims = _block_processes(out, 1, 1)
+            both_at_once = both_at_once or bool(victims and _block_processes(out, 0, 1))
+            if victims and list((out / "block1" / "attempt-1").glob("*/scalar-nerf-block/*/config.yml")):
+                worker = victims[0].parent()
+                assert worker.name().startswith("ray::") or " ".join(worker.cmdline()).startswith("ray::"), worker.cmdline()
+                worker.send_signal(signal.SIGKILL)
+                gone, alive = psutil.wait_procs(victims, timeout=30)
+                assert not alive, "the block process must die with its Ray worker"
+                killed = True
+            time.sleep(0.05)
+        assert killed, "block 1's first attempt was never seen running"
+        process.wait(timeout=900)
+    output = log_path.read_text()
+    seconds = time.time() - started
+    assert process.returncode == 0, output[-5000:]
+    assert both_at_once, "the two blocks should train at the same time"
+    assert "block 1: attempt 1 failed" in output and "kept apart" in output
+
+    # the killed attempt: set aside, partial (no final checkpoint), never used
+    failed = out / "block1" / "failed-attempt-1"
+    (partial,) = [p.parent for p in failed.glob("*/scalar-nerf-block/*/config.yml")]
+    assert latest_checkpoint_step(partial / "nerfstudio_models") != BLOCK_STEPS - 1
+    runs = {block: _done_run(out, block) for block in (0, 1)}
+    assert "/block0/attempt-1/" in str(runs[0]) and "/block1/attempt-2/" in str(runs[1])
+    for run in runs.values():
+        assert latest_checkpoint_step(run / "nerfstudio_models") == BLOCK_STEPS - 1
+
+    (assembled,) = run_dirs(out / "assembled")
+    sources = json.loads((assembled / "assembled_from.json").read_text())["blocks"]
+    assert sources == {str(b): str(r.resolve()) for b, r in runs.items()}
+    state = _state(assembled)
+    assert state["_model.blocks_started"].tolist() == [True, True]
+    for block, run in runs.items():
+        key = f"_model.blocks.{block}.field.encoder.table"
+        assert torch.equal(state[key], _state(run)[key])
+    evaluation = ns_eval(assembled, tmp_path / "eval.json")
+    assert evaluation.returncode == 0, evaluation.stdout[-3000:] + evaluation.stderr[-3000:]
+    assert 5.0 < json.loads((tmp_path / "eval.json").read_text())["results"]["psnr"] < 60.0
+
+    time.sleep(2)
+    assert not _ray_processes(started), "the local Ray cluster must be shut down"
+    print(f"ray: 2 blocks of {BLOCK_STEPS} steps with one retry in {seconds:.0f} s")
+
+    # a re-run skips both blocks (no Ray, no training) and reuses the assembled run
+    rerun = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    assert rerun.returncode == 0, rerun.stdout[-3000:] + rerun.stderr[-3000:]
+    assert rerun.stdout.count("skipped (done before)") == 2 and "already assembled" in rerun.stdout
+    assert ": attempt" not in rerun.stdout and "Ray cluster" not in rerun.stdout, "nothing is trained, Ray is not started"
+    assert run_dirs(out / "assembled") == [assembled]
+
+
+@pytest.mark.slow
+def test_local_executor_reports_failures_then_trains_and_fuses(global_run: Path, tmp_path: Path) -> None:
+    """Without Ray: a block whose every attempt fails makes the command exit non-zero naming it;
+    the same command, fixed, then trains it with the threads asked for and fuses it."""
+    out = tmp_path / "blocks"
+    base = ["scalar-nerf-train-blocks", str(global_run), "--blocks", "0", "--num-cpus", "2", "--cpus-per-block", "2",
+            "--block-steps", str(BLOCK_STEPS), "--output-dir", str(out), "--max-retries", "1"]
+    broken = subprocess.run([*base, "--", "--no-such-option", "1"], capture_output=True, text=True, timeout=600)
+    assert broken.returncode == 1
+    assert "block(s) 0 failed after 2 attempt(s)" in broken.stderr
+    assert sorted(p.name for p in (out / "block0").iterdir()) == ["failed-attempt-1", "failed-attempt-2"]
+    assert not run_dirs(out / "assembled")
+
+    result = subprocess.run(base, capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    run = _done_run(out, 0)
+    assert "/block0/attempt-3/" in str(run)
+    assert "OMP_NUM_THREADS=2" in (out / "block0" / "attempt-3" / "train.log").read_text().splitlines()[1]
+    (assembled,) = run_dirs(out / "assembled")
+    assert _state(assembled)["_model.blocks_started"].tolist() == [True, False]
+    assert f"ns-eval --load-config {assembled / 'config.yml'}" in result.stdout
+    assert train_blocks.PROG in result.stdout
