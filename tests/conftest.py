@@ -128,3 +128,35 @@ def full_run(scene: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     (run,) = run_dirs(output_dir)
     assert "phases: global: steps 0-39, block 0: steps 40-54, block 1: steps 55-69" in " ".join(result.stdout.split())
     return run
+
+
+def tiny_trainer(scene: Path, output_dir: Path, log2_hashmap_size: int = 14, rays_per_batch: int = 512, **pipeline: object):
+    """An in-process scalar-nerf trainer on ``scene`` with tiny settings, set up but not trained.
+
+    ``pipeline`` sets attributes of the pipeline config (e.g. ``num_blocks=2``, ``decoder_mode=...``);
+    defaults: 2 blocks, 20 global and 8 block steps.
+    """
+    import copy
+
+    from scalar_nerfstudio.method_configs import scalar_nerf
+
+    config = copy.deepcopy(scalar_nerf.config)
+    config.data = scene
+    config.pipeline.datamanager.data = scene
+    config.output_dir = output_dir
+    config.vis = "tensorboard"
+    config.logging.local_writer.enable = False
+    config.steps_per_save = 1000
+    config.pipeline.model.field.log2_hashmap_size = log2_hashmap_size
+    config.pipeline.model.field.max_resolution = 256
+    config.pipeline.model.num_samples_per_ray = 32
+    config.pipeline.model.occupancy_warmup_steps = 8
+    config.pipeline.datamanager.train_num_rays_per_batch = rays_per_batch
+    settings = {"num_blocks": NUM_BLOCKS, "global_steps": 20, "block_steps": 8, **pipeline}
+    for key, value in settings.items():
+        setattr(config.pipeline, key, value)
+    config.set_timestamp()
+    config.save_config()
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    return trainer

@@ -16,7 +16,7 @@ import pytest
 import torch
 import yaml
 
-from conftest import BLOCK_STEPS, CASTLE, NUM_BLOCKS, free_port, ns_eval, requires_castle, run_dirs, sigkill_after_checkpoint
+from conftest import BLOCK_STEPS, tiny_trainer, CASTLE, NUM_BLOCKS, free_port, ns_eval, requires_castle, run_dirs, sigkill_after_checkpoint
 from scalar_nerfstudio.blocks.split import load_blocks_json, split_cameras
 from scalar_nerfstudio.engine.trainer import latest_checkpoint_step
 from scalar_nerfstudio.method_configs import scalar_nerf
@@ -90,28 +90,7 @@ def test_ns_eval_fuses_the_blocks(full_run: Path, tmp_path: Path) -> None:
 
 def _trainer(scene: Path, output_dir: Path, **pipeline: object):
     """A scalar-nerf trainer on ``scene`` with the TINY settings, set up but not trained."""
-    config = copy.deepcopy(scalar_nerf.config)
-    config.data = scene
-    config.pipeline.datamanager.data = scene
-    config.output_dir = output_dir
-    config.vis = "tensorboard"
-    config.logging.local_writer.enable = False
-    config.steps_per_save = 1000
-    config.pipeline.model.field.log2_hashmap_size = 14
-    config.pipeline.model.field.max_resolution = 256
-    config.pipeline.model.num_samples_per_ray = 32
-    config.pipeline.model.occupancy_warmup_steps = 8
-    config.pipeline.datamanager.train_num_rays_per_batch = 512
-    config.pipeline.num_blocks = NUM_BLOCKS
-    config.pipeline.global_steps = 20
-    config.pipeline.block_steps = 8
-    for key, value in pipeline.items():
-        setattr(config.pipeline, key, value)
-    config.set_timestamp()
-    config.save_config()
-    trainer = config.setup(local_rank=0, world_size=1)
-    trainer.setup()
-    return trainer
+    return tiny_trainer(scene, output_dir, **pipeline)
 
 
 def _decoder_params(model) -> List[torch.Tensor]:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-from copy import deepcopy
 from pathlib import Path
 
 import numpy as np
@@ -13,8 +12,7 @@ from hypothesis import strategies as st
 
 from scalar_nerfstudio.blocks.capacity import auto_num_blocks, block_capacity, layout_scale
 from scalar_nerfstudio.data.synthetic_scene import look_at
-from scalar_nerfstudio.method_configs import scalar_nerf
-from conftest import CASTLE, SHARED_DATA
+from conftest import CASTLE, SHARED_DATA, tiny_trainer
 
 FOX = SHARED_DATA / "fox"
 
@@ -136,26 +134,9 @@ def test_block_capacity_grows_with_extent_and_is_capped_by_pixels() -> None:
 
 
 def _trainer(scene: Path, output_dir: Path, log2_hashmap_size: int = 14, **pipeline):
-    config = deepcopy(scalar_nerf.config)
-    config.pipeline.datamanager.data = scene
-    config.output_dir = output_dir
-    config.vis = "tensorboard"
-    config.logging.local_writer.enable = False
-    config.steps_per_save = 1000
-    config.pipeline.model.field.log2_hashmap_size = log2_hashmap_size
-    config.pipeline.model.field.max_resolution = 256
-    config.pipeline.model.num_samples_per_ray = 32
-    config.pipeline.model.occupancy_warmup_steps = 8
-    config.pipeline.datamanager.train_num_rays_per_batch = 256
-    config.pipeline.global_steps = 6
-    config.pipeline.block_steps = 3
-    for key, value in pipeline.items():
-        setattr(config.pipeline, key, value)
-    config.set_timestamp()
-    config.save_config()
-    trainer = config.setup(local_rank=0, world_size=1)
-    trainer.setup()
-    return trainer
+    """Tiny trainer: 6 global and 3 block steps, 256 rays; automatic K unless ``num_blocks`` is given."""
+    settings = {"num_blocks": None, "global_steps": 6, "block_steps": 3, **pipeline}
+    return tiny_trainer(scene, output_dir, log2_hashmap_size=log2_hashmap_size, rays_per_batch=256, **settings)
 
 
 def _tables(trainer) -> dict:
