@@ -316,14 +316,15 @@ def plots(results: Dict[str, Dict[str, Any]], table: List[Dict[str, Any]], outpu
         ("render_ms_per_image", "render time per eval image (ms, log)", "psnr_vs_render_time.png"),
         ("parameters", "parameters (log)", "psnr_vs_parameters.png"),
     ):
-        figure, axes = plt.subplots(figsize=(7, 4.5))
-        for row in table:
-            axes.scatter(row[key], row["psnr"], s=25)
-            axes.annotate(row["label"], (row[key], row["psnr"]), fontsize=6, xytext=(3, 2), textcoords="offset points")
+        figure, axes = plt.subplots(figsize=(9, 4.5))
+        markers = "osD^vP*Xh<>p"
+        for index, row in enumerate(sorted(table, key=lambda r: -r["psnr"])):
+            axes.scatter(row[key], row["psnr"], s=36, marker=markers[index % len(markers)], label=f"{row['label']} ({row['psnr']:.2f} dB)")
         axes.set_xscale("log")
         axes.set_xlabel(xlabel)
         axes.set_ylabel("eval PSNR (dB)")
         axes.grid(alpha=0.3)
+        axes.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5))
         figure.tight_layout()
         written.append(output_dir / filename)
         figure.savefig(written[-1], dpi=120)
