@@ -99,6 +99,10 @@ class ScalarPipelineConfig(VanillaPipelineConfig):
     blocks_json: Optional[Path] = None
     """Use this split (a run's blocks.json) instead of computing one (set by scalar-nerf-block)."""
 
+    def automatic_num_blocks(self, scale: LayoutScale, num_images: int) -> int:
+        """The automatic K for a camera layout of ``num_images`` training images (blocks/capacity.py)."""
+        return auto_num_blocks(scale, self.model.field.log2_hashmap_size, num_images, self.auto_min_images_per_block, self.max_auto_blocks)
+
     def phases(self, num_blocks: int, train_blocks: Optional[bool] = None) -> List[Phase]:
         """The training phases, in order, for a split into ``num_blocks`` blocks (``train_blocks``
         overrides the config's, e.g. False when the automatic K is 1)."""
@@ -140,10 +144,7 @@ class ScalarPipeline(VanillaPipeline):
         self.auto_num_blocks: Optional[int] = None
         """The automatic K, when K was not given (and no split was)."""
         if config.num_blocks is None and config.blocks_json is None and config.only_block is None:
-            self.auto_num_blocks = auto_num_blocks(
-                self.layout_scale, config.model.field.log2_hashmap_size, len(parsed.image_filenames),
-                config.auto_min_images_per_block, config.max_auto_blocks,
-            )
+            self.auto_num_blocks = config.automatic_num_blocks(self.layout_scale, len(parsed.image_filenames))
         self.split: BlockSplit = self._block_split(camera_centres(parsed).double().numpy())
         # Automatic K = 1: one block would repeat the global model, so none is allocated or trained.
         single_model = self.auto_num_blocks == 1

@@ -97,7 +97,7 @@ def test_threads_and_pool_size_do_not_oversubscribe() -> None:
     assert LocalExecutor(2, 1, 0).slots == 2
     assert LocalExecutor(2, 2, 0).slots == 1
     assert LocalExecutor(8, 3, 0).slots == 2
-    run = GlobalRun(Path("/runs/g"), 2, Path("/runs/g/nerfstudio_models/step-000000039.ckpt"), 15, ["--pipeline.decoder-mode", "frozen"])
+    run = GlobalRun(Path("/runs/g"), 2, Path("/runs/g/nerfstudio_models/step-000000039.ckpt"), 15)
     command = block_command(run, 1, Path("/o/block1/attempt-3"), 0, None, ["--steps-per-save", "4"])
     assert command[:5] == ["scalar-nerf-block", "--global-run", "/runs/g", "--block", "1"]
     assert command[command.index("--pipeline.block-steps") + 1] == "15" and command[command.index("--max-num-iterations") + 1] == "15"

@@ -71,6 +71,11 @@ class LayoutScale:
         """Pixels (at the viewing distance, training resolution) that ``extent`` scene units span."""
         return extent / self.pixel_size
 
+    @property
+    def layout_pixels(self) -> float:
+        """R: pixels the whole camera layout spans."""
+        return self.pixels_across(self.extent)
+
 
 @dataclass(frozen=True)
 class BlockCapacity:
@@ -122,7 +127,7 @@ def auto_num_blocks(scale: LayoutScale, log2_hashmap_size: int, num_images: int,
     ``[1, min(max_blocks, num_images // min_images_per_block)]``."""
     if min_images_per_block < 1 or max_blocks < 1:
         raise ValueError("auto_num_blocks: min_images_per_block and max_blocks must be >= 1")
-    pixels = scale.pixels_across(scale.extent)
+    pixels = scale.layout_pixels
     wanted = math.ceil(pixels * pixels / float(1 << log2_hashmap_size)) if pixels > 0 else 1
     return max(1, min(wanted, max_blocks, num_images // min_images_per_block))
 

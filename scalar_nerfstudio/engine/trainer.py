@@ -112,12 +112,11 @@ class ScalarTrainer(Trainer):
         """Save the block split as blocks.json in the run folder and print it with the phases."""
         save_blocks_json(pipeline.split, self.base_dir / "blocks.json", pipeline.image_names)
         CONSOLE.print(format_split_table(pipeline.split, pipeline.image_names))
-        scale = pipeline.layout_scale
+        pixels, log2_size = pipeline.layout_scale.layout_pixels, pipeline.config.model.field.log2_hashmap_size
         if pipeline.auto_num_blocks is not None:
             CONSOLE.print(
-                f"automatic K = {pipeline.auto_num_blocks}: the camera layout is {scale.pixels_across(scale.extent):.0f} training "
-                f"pixels across at the viewing distance (R^2 / T = {scale.pixels_across(scale.extent) ** 2 / 2 ** pipeline.config.model.field.log2_hashmap_size:.2f}"
-                f" for T = 2^{pipeline.config.model.field.log2_hashmap_size})"
+                f"automatic K = {pipeline.auto_num_blocks}: the camera layout is {pixels:.0f} training pixels across at the "
+                f"viewing distance (R^2 / T = {pixels ** 2 / 2 ** log2_size:.2f} for T = 2^{log2_size})"
                 + ("; one model suffices, no block is trained" if pipeline.auto_num_blocks == 1 else "")
             )
         for index, capacity in pipeline.block_capacities.items():

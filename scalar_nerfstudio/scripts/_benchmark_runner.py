@@ -3,8 +3,8 @@
     python -m scalar_nerfstudio.scripts._benchmark_runner SPEC.json
 
 SPEC (written by the benchmark) holds: ``method`` ("scalar-nerf" or "nerfacto"), ``data``,
-``downscale``, ``overrides`` (dotted trainer-config attributes -> values), ``eval_steps`` (evaluate
-after these step counts), ``eval_at_end``, ``time_limit_s`` (stop training after this much training
+``downscale``, ``overrides`` (dotted trainer-config attributes -> values), ``eval_every`` (evaluate
+every this many steps; 0: never during training), ``eval_at_end``, ``time_limit_s`` (stop training after this much training
 wall-clock; 0: none), ``fusions`` (fusion modes to evaluate at the end; the first is the run's),
 ``output_dir``, ``result`` (where to write the JSON), ``keep_checkpoint``.
 
@@ -15,7 +15,6 @@ benchmark's progress bar.
 from __future__ import annotations
 
 import json
-import resource
 import sys
 import time
 from copy import deepcopy
@@ -23,6 +22,8 @@ from pathlib import Path
 from typing import Any, Dict, List
 
 import torch
+
+from scalar_nerfstudio.engine.report import MIB, peak_memory_mib, tensor_bytes
 
 
 def _disable_lpips() -> None:
@@ -111,10 +112,9 @@ def run(spec: Dict[str, Any]) -> Dict[str, Any]:
     if not spec.get("keep_checkpoint", False):  # no checkpoint writes inside the timed steps
         trainer.save_checkpoint = lambda step: None
     pipeline = trainer.pipeline
-    total = int(getattr(pipeline, "total_steps", config.max_num_iterations))
-    if config.max_num_iterations > 0:
-        total = min(total, config.max_num_iterations) if hasattr(pipeline, "total_steps") else config.max_num_iterations
-    eval_steps = {int(s) for s in spec.get("eval_steps", []) if 0 < int(s) <= total}
+    total = config.max_num_iterations  # the trainer's setup resolved 0 (= every phase) to the phases' total
+    eval_every = int(spec.get("eval_every", 0))
+    eval_steps = set(range(eval_every, total + 1, eval_every)) if eval_every > 0 else set()
     time_limit = float(spec.get("time_limit_s", 0.0))
     curve: List[Dict[str, float]] = []
     clock = {"train_s": 0.0, "steps": 0}
@@ -150,8 +150,7 @@ def run(spec: Dict[str, Any]) -> Dict[str, Any]:
         pipeline.model.set_fusion(mode)
         finals[mode] = _evaluate(pipeline)
     model = pipeline.model
-    trained = _trained_modules(model)
-    parameters = sum(p.numel() for m in trained for p in m.parameters())
+    trained_params = [p for m in _trained_modules(model) for p in m.parameters()]
     rays = pipeline.datamanager.get_train_rays_per_batch()
     result = {
         "name": spec["name"],
@@ -162,9 +161,9 @@ def run(spec: Dict[str, Any]) -> Dict[str, Any]:
         "curve": curve,
         "final": curve[-1] if curve else {},
         "fusions": finals,
-        "parameters": parameters,
-        "parameter_mib": sum(p.numel() * p.element_size() for m in trained for p in m.parameters()) / 2**20,
-        "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+        "parameters": sum(p.numel() for p in trained_params),
+        "parameter_mib": tensor_bytes(trained_params) / MIB,
+        "peak_rss_mib": peak_memory_mib("cpu")["peak_rss_mib"],
         "threads": torch.get_num_threads(),
         "run_dir": str(trainer.base_dir),
     }

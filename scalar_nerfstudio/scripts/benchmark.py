@@ -114,14 +114,14 @@ def auto_k(config: BenchmarkConfig, log2_t: int) -> int:
     """The automatic K scalar-nerf would choose on this scene (same rule as the pipeline)."""
     from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 
-    from scalar_nerfstudio.blocks.capacity import auto_num_blocks
     from scalar_nerfstudio.pipeline import ScalarPipelineConfig, _layout_scale
 
     parsed = NerfstudioDataParserConfig(
         data=config.data, downscale_factor=config.downscale, eval_mode="interval", eval_interval=8
     ).setup().get_dataparser_outputs("train")
-    defaults = ScalarPipelineConfig()
-    return auto_num_blocks(_layout_scale(parsed), log2_t, len(parsed.image_filenames), defaults.auto_min_images_per_block, defaults.max_auto_blocks)
+    pipeline = ScalarPipelineConfig()
+    pipeline.model.field.log2_hashmap_size = log2_t
+    return pipeline.automatic_num_blocks(_layout_scale(parsed), len(parsed.image_filenames))
 
 
 def plan(config: BenchmarkConfig) -> Tuple[List[Variant], Dict[str, str]]:
@@ -177,17 +177,13 @@ def _spec(config: BenchmarkConfig, variant: Variant, runs: Path, results: Dict[s
     overrides = dict(variant.overrides)
     if variant.base is not None:
         overrides["pipeline.global_checkpoint"] = results[variant.base]["checkpoint"]
-    steps = (overrides.get("pipeline.global_steps", 0) or 0)
-    if overrides.get("pipeline.train_blocks", True) and variant.method == "scalar-nerf":
-        steps += config.num_blocks * config.block_steps
-    eval_steps = list(range(config.eval_every, steps + 1, config.eval_every))
-    time_limit = variant.time_limit_s
-    if variant.method == "nerfacto":
-        eval_steps = []
+    eval_every = config.eval_every
+    if variant.method == "nerfacto":  # time-limited: evaluated at the end only (its renders take ~1 min)
+        eval_every = 0
         overrides["max_num_iterations"] = 10**6
     return {
         "name": variant.name, "method": variant.method, "data": str(config.data), "downscale": config.downscale,
-        "overrides": overrides, "eval_steps": eval_steps, "time_limit_s": time_limit, "fusions": variant.fusions,
+        "overrides": overrides, "eval_every": eval_every, "time_limit_s": variant.time_limit_s, "fusions": variant.fusions,
         "output_dir": str(runs / variant.name), "result": str(runs / f"{variant.name}.json"),
         "keep_checkpoint": variant.name == "global",
     }

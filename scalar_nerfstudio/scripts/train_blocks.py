@@ -38,7 +38,6 @@ PROG = "scalar-nerf-train-blocks"
 DONE_MARKER = "DONE.json"
 LOCK_FILE = ".train-blocks.lock"
 ATTEMPT_PATTERN = re.compile(r"^(?:failed-|interrupted-|stale-)?attempt-(\d+)$")
-CHECKPOINT_PATTERN = re.compile(r"^step-(\d{9})\.ckpt$")
 THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMEXPR_NUM_THREADS")
 INSTALL_RAY = "pip install 'scalar-nerfstudio[distributed]'"
 
@@ -90,8 +89,6 @@ class GlobalRun:
     num_blocks: int
     global_checkpoint: Path
     block_steps: int
-    block_args: List[str]
-    """ns-train settings taken from the global run (decoder mode, rays per batch)."""
 
 
 def check_global_run(run: Path, blocks: Optional[Tuple[int, ...]]) -> Tuple[GlobalRun, List[int]]:
@@ -117,17 +114,8 @@ def check_global_run(run: Path, blocks: Optional[Tuple[int, ...]]) -> Tuple[Glob
         raise TrainBlocksError(f"block {bad[0]} does not exist; {blocks_json} has blocks 0..{num_blocks - 1}")
     if not chosen:
         raise TrainBlocksError("--blocks: no block given")
-
-    import yaml
-
-    global_config = yaml.load((blocks_json.parent / "config.yml").read_text(), Loader=yaml.Loader)
-    pipeline = global_config.pipeline
-    block_args = [
-        "--pipeline.decoder-mode", str(pipeline.decoder_mode),
-        "--pipeline.datamanager.train-num-rays-per-batch", str(pipeline.datamanager.train_num_rays_per_batch),
-    ]
-    run_dir = blocks_json.parent
-    return GlobalRun(run_dir, num_blocks, Path(config.pipeline.global_checkpoint), pipeline.block_steps, block_args), chosen
+    # _adopt_global_run took the run's block steps, decoder mode and ray batch (all left at defaults here).
+    return GlobalRun(blocks_json.parent, num_blocks, Path(config.pipeline.global_checkpoint), config.pipeline.block_steps), chosen
 
 
 def default_cpus_per_block(total_cpus: int, num_blocks: int, node_cpus: Optional[int] = None) -> int:
@@ -155,9 +143,7 @@ def block_command(global_run: GlobalRun, block: int, attempt_dir: Path, gpus: fl
         "--block", str(block),
         "--output-dir", str(attempt_dir),
         "--pipeline.block-steps", str(steps),
-        # explicit, so that nerfstudio's step log (set up before the trainer knows its steps) has a total
-        "--max-num-iterations", str(steps),
-        *global_run.block_args,
+        "--max-num-iterations", str(steps),  # the final step, which finished_run checks for
         "--vis", "tensorboard",  # no viewer: parallel blocks would fight over its port
     ]
     if gpus <= 0:
@@ -341,10 +327,11 @@ class RayExecutor:
 
 
 def latest_step(checkpoint_dir: Path) -> Optional[int]:
-    if not checkpoint_dir.is_dir():
-        return None
-    steps = [int(m.group(1)) for m in map(CHECKPOINT_PATTERN.match, os.listdir(checkpoint_dir)) if m]
-    return max(steps) if steps else None
+    """The trainer's newest ``step-N.ckpt`` rule (imported here: it brings torch, which the command's
+    own process has loaded anyway and a Ray worker never calls this)."""
+    from scalar_nerfstudio.engine.trainer import latest_checkpoint_step
+
+    return latest_checkpoint_step(checkpoint_dir)
 
 
 def find_block_run(attempt_dir: Path) -> Optional[Path]:
