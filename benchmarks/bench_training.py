@@ -123,7 +123,7 @@ def main() -> None:
     parser.add_argument("--data", type=Path, default=Path("../shared/data/castle-P30"))
     parser.add_argument("--downscale", type=int, default=4)
     parser.add_argument("--minutes", type=float, default=12.0, help="training wall-clock budget per method")
-    parser.add_argument("--scalar-steps", type=int, default=800, help="scalar-nerf run length (sets its lr schedule); the time budget may stop it earlier")
+    parser.add_argument("--scalar-steps", type=int, default=1800, help="scalar-nerf run length (sets its lr schedule); the time budget may stop it earlier")
     parser.add_argument("--methods", nargs="+", default=["scalar-nerf", "nerfacto"])
     parser.add_argument("--workdir", type=Path, default=Path("outputs/bench_training"))
     parser.add_argument("--json", type=Path, default=None, help="also write the results here")

@@ -73,14 +73,26 @@ class Decoder(nn.Module):
         )
 
     def density(self, features: Tensor) -> tuple[Tensor, Tensor]:
-        """[N, in_dim] encoder features -> ([N] density in 1/world unit, [N, geo_feat_dim] features)."""
+        """[N, in_dim] encoder features -> ([N] float32 density in 1/world unit, [N, geo_feat_dim] features).
+
+        Under autocast the matrix products run in low precision; the density's exponential does not.
+        """
         out = self.density_mlp(features)
-        density = trunc_exp(out[:, 0] + self.density_bias)
+        density = trunc_exp(out[:, 0].float() + self.density_bias)
         return density, out[:, 1:]
 
     def colour(self, geo_features: Tensor, encoded_directions: Tensor, appearance: Tensor) -> Tensor:
-        """[N, geo], [N, dir], [N, app] -> [N, 3] RGB in [0, 1]."""
-        return torch.sigmoid(self.colour_mlp(torch.cat([geo_features, encoded_directions, appearance], dim=-1)))
+        """[N, geo], [N, dir], [N, app] -> [N, 3] float32 RGB in [0, 1]."""
+        inputs = torch.cat([geo_features, encoded_directions.to(geo_features.dtype), appearance.to(geo_features.dtype)], dim=-1)
+        return torch.sigmoid(self.colour_mlp(inputs).float())
+
+
+def cpu_bfloat16_is_fast() -> bool:
+    """Whether this CPU has native bfloat16 matrix products (AVX512-BF16 / AMX through oneDNN)."""
+    try:
+        return bool(torch.backends.mkldnn.is_available() and torch.ops.mkldnn._is_mkldnn_bf16_supported())
+    except (AttributeError, RuntimeError):
+        return False
 
 
 @dataclass
@@ -102,6 +114,10 @@ class ScalarFieldConfig(InstantiateConfig):
     """Hash-grid kernel: "auto" uses the C++ CPU kernel on CPU when it builds, torch otherwise / on CUDA."""
     hidden_dim: int = 128
     """Decoder width."""
+    decoder_precision: Literal["auto", "float32", "bfloat16"] = "auto"
+    """Matrix products of the decoder on CPU. "auto": bfloat16 where the CPU multiplies bfloat16
+    natively (about 2x faster decoder), else float32. Densities, colours, the hash grid and volume
+    rendering stay float32. On CUDA the trainer's mixed precision decides instead."""
     geo_feat_dim: int = 15
     """Features from the density head to the colour head."""
     appearance_dim: int = 8
@@ -143,10 +159,18 @@ class ScalarField(nn.Module):
         )
         self.appearance = nn.Embedding(max(num_images, 1), config.appearance_dim)
         nn.init.normal_(self.appearance.weight, std=0.01)
+        precision = config.decoder_precision
+        self.cpu_bfloat16 = precision == "bfloat16" or (precision == "auto" and cpu_bfloat16_is_fast())
+
+    def _decoder_autocast(self, like: Tensor) -> torch.autocast:
+        """bfloat16 autocast for the decoder on CPU when configured; a no-op context otherwise."""
+        return torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.cpu_bfloat16 and like.device.type == "cpu")
 
     def density_at_unit(self, unit_positions: Tensor) -> tuple[Tensor, Tensor]:
-        """[N, 3] contracted unit-cube positions -> ([N] density, [N, geo_feat_dim] features)."""
-        return self.decoder.density(self.encoder(unit_positions))
+        """[N, 3] contracted unit-cube positions -> ([N] float32 density, [N, geo_feat_dim] features)."""
+        features = self.encoder(unit_positions)
+        with self._decoder_autocast(features):
+            return self.decoder.density(features)
 
     def appearance_for(self, camera_indices: Optional[Tensor], num_points: int) -> Tensor:
         """[N] training-image indices -> [N, app]; the mean embedding when not training or no index."""
@@ -159,4 +183,5 @@ class ScalarField(nn.Module):
         """[N, geo], [N, 3] unit view directions, [N] image indices -> [N, 3] RGB."""
         encoded = self.direction_encoding(directions)  # torch SH takes unit vectors in [-1, 1]
         appearance = self.appearance_for(camera_indices, geo_features.shape[0])
-        return self.decoder.colour(geo_features, encoded, appearance)
+        with self._decoder_autocast(geo_features):
+            return self.decoder.colour(geo_features, encoded, appearance)

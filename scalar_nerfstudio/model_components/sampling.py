@@ -104,6 +104,11 @@ class OccupancyGrid(nn.Module):
         """[M, 3] contracted unit-cube positions -> [M] bool."""
         return self.occupied[self.cell_indices(unit_positions)]
 
+    @property
+    def pruning(self) -> bool:
+        """Whether the grid marks any cell empty yet (never during the warm-up)."""
+        return not bool(self.occupied.all())
+
     def occupied_fraction(self) -> float:
         """Share of cells currently marked occupied."""
         return float(self.occupied.float().mean())

@@ -5,7 +5,8 @@ Rendering path (per ray batch, flat tensors, no nerfstudio RaySamples on the hot
 1. ``S`` intervals per ray, evenly spaced in Mip-NeRF 360's linear/disparity spacing.
 2. Samples in empty cells of the :class:`OccupancyGrid` are dropped.
 3. A no-grad density pass over the remaining samples finds where each ray's transmittance has
-   fallen below ``transmittance_threshold``; those occluded samples are dropped too.
+   fallen below ``transmittance_threshold``; those occluded samples are dropped too, and so are
+   samples more transparent than ``alpha_threshold`` once the grid has warmed up.
 4. The field (density and colour, with gradients) runs only on the surviving samples, which are
    scattered back into a dense ``[R, S]`` layout for volume rendering.
 """
@@ -25,10 +26,12 @@ from torch.nn import Parameter
 from scalar_nerfstudio.fields.scalar_field import ScalarField, ScalarFieldConfig, contract_to_unit_cube
 from scalar_nerfstudio.metrics import ImageMetrics, psnr
 from scalar_nerfstudio.model_components.rendering import (
+    alphas_from_densities,
     composite,
     distortion_loss,
     render_depth,
     render_weights,
+    weights_from_alphas,
 )
 from scalar_nerfstudio.model_components.sampling import OccupancyGrid, lin_disp_spacing, sample_intervals
 
@@ -69,12 +72,16 @@ class ScalarModelConfig(ModelConfig):
     """Occupancy-grid cells per axis of the contracted cube."""
     occupancy_update_every: int = 16
     """Steps between occupancy-grid updates."""
-    occupancy_warmup_steps: int = 256
+    occupancy_warmup_steps: int = 128
     """Steps during which every occupancy update re-evaluates all cells."""
     occupancy_opacity_threshold: float = 0.01
     """A cell is empty when its opacity (density over the cell's size) stays below min(this, mean)."""
     transmittance_threshold: float = 1e-3
     """Samples behind the point where a ray's transmittance drops below this are not evaluated."""
+    alpha_threshold: float = 0.01
+    """Once the occupancy grid marks cells empty (after its warm-up), samples whose opacity in the
+    no-grad density pass is below this are not evaluated with gradients either (nerfacc's
+    alpha_thre; 0 disables it). Skipped samples are not rendered, in training or evaluation."""
     distortion_loss_mult: float = 0.002
     """Weight of Mip-NeRF 360's distortion loss (0 disables it)."""
     background_color: Literal["random", "grey"] = "random"
@@ -193,8 +200,11 @@ class ScalarModel(Model):
             return candidate_ids
         densities = torch.zeros(num_rays * num_samples, device=deltas.device)
         densities[candidate_ids] = self._density_no_grad(unit_positions[candidate_ids])
-        _, transmittance = render_weights(densities.reshape(num_rays, num_samples), deltas)
+        alphas = alphas_from_densities(densities.reshape(num_rays, num_samples), deltas)
+        _, transmittance = weights_from_alphas(alphas)
         visible = occupied & (transmittance.reshape(-1) > self.config.transmittance_threshold)
+        if self.config.alpha_threshold > 0 and self.occupancy.pruning:
+            visible &= alphas.reshape(-1) > self.config.alpha_threshold
         return torch.nonzero(visible).squeeze(-1)
 
     def _background(self, num_rays: int, like: Tensor) -> Tensor:

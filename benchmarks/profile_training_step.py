@@ -1,0 +1,71 @@
+"""Where one training step's time goes: torch-profiler table of a `scalar-nerf` step on a real scene.
+
+Trains the registered ``scalar-nerf`` config (its defaults) for ``--steps`` steps, printing seconds
+per step, samples per ray evaluated with gradients and the occupied grid fraction every 25 steps,
+and the profiler's table for step ``--profile-step`` (after the occupancy warm-up by default).
+
+    python benchmarks/profile_training_step.py --data ../shared/data/castle-P30 --steps 300 --profile-step 280
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import torch
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", type=Path, default=Path("../shared/data/castle-P30"))
+    parser.add_argument("--downscale", type=int, default=4)
+    parser.add_argument("--steps", type=int, default=300)
+    parser.add_argument("--profile-step", type=int, default=280)
+    parser.add_argument("--output-dir", type=Path, default=Path("outputs/profile_training_step"))
+    args = parser.parse_args()
+
+    from nerfstudio.configs.method_configs import all_methods
+    from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
+
+    config = all_methods["scalar-nerf"]
+    config.pipeline.datamanager.data = args.data
+    config.pipeline.datamanager.dataparser = NerfstudioDataParserConfig(
+        downscale_factor=args.downscale, eval_mode="interval", eval_interval=8
+    )
+    config.max_num_iterations = args.steps
+    config.vis = "tensorboard"
+    config.steps_per_eval_batch = config.steps_per_eval_image = config.steps_per_eval_all_images = 10**9
+    config.steps_per_save = 10**9
+    config.output_dir = args.output_dir
+    config.logging.local_writer.enable = False
+    config.set_timestamp()
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup()
+
+    iteration = trainer.train_iteration
+    window = {"start": time.perf_counter(), "steps": 0}
+
+    def observed_iteration(step: int):
+        if step == args.profile_step:
+            with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as profile:
+                result = iteration(step)
+            print(profile.key_averages().table(sort_by="self_cpu_time_total", row_limit=20), flush=True)
+            return result
+        result = iteration(step)
+        window["steps"] += 1
+        if (step + 1) % 25 == 0:
+            now = time.perf_counter()
+            metrics = result[2]
+            print(f"step {step + 1}: {(now - window['start']) / max(window['steps'], 1):.3f} s/step, "
+                  f"{float(metrics['samples_per_ray']):.1f} samples/ray with gradients, "
+                  f"{float(metrics['occupied_fraction']):.3f} of the grid occupied", flush=True)
+            window.update(start=now, steps=0)
+        return result
+
+    trainer.train_iteration = observed_iteration
+    trainer.train()
+
+
+if __name__ == "__main__":
+    main()

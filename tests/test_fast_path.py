@@ -1,0 +1,109 @@
+"""The CPU speed levers of the field and the model: a bfloat16 decoder and opacity-based sample skipping.
+
+Both must leave what is rendered and learned as it was, up to the precision they trade away.
+"""
+
+from __future__ import annotations
+
+import copy
+
+import pytest
+import torch
+from nerfstudio.cameras.rays import RayBundle
+from nerfstudio.data.scene_box import SceneBox
+
+from scalar_nerfstudio.fields import scalar_field
+from scalar_nerfstudio.fields.scalar_field import ScalarField, ScalarFieldConfig
+from scalar_nerfstudio.models.scalar_model import ScalarModel, ScalarModelConfig
+
+SMALL_FIELD = dict(num_levels=4, log2_hashmap_size=12, max_resolution=128, hidden_dim=64)
+
+
+def _field(precision: str) -> ScalarField:
+    torch.manual_seed(0)
+    return ScalarFieldConfig(**SMALL_FIELD, decoder_precision=precision).setup(num_images=3)
+
+
+def _outputs_and_decoder_grads(field: ScalarField, points: torch.Tensor, directions: torch.Tensor):
+    field.zero_grad()
+    density, geo = field.density_at_unit(points)
+    rgb = field.colour(geo, directions, torch.zeros(points.shape[0], dtype=torch.long))
+    (density.log1p().sum() + rgb.square().sum()).backward()
+    grads = torch.cat([p.grad.reshape(-1) for p in field.decoder.parameters()])
+    return density, rgb, grads
+
+
+def test_bfloat16_decoder_matches_float32_and_keeps_float32_outputs_and_grads() -> None:
+    fp32, bf16 = _field("float32"), _field("bfloat16")
+    bf16.load_state_dict(fp32.state_dict())
+    assert bf16.cpu_bfloat16 and not fp32.cpu_bfloat16
+    generator = torch.Generator().manual_seed(1)
+    points = torch.rand(4096, 3, generator=generator)
+    directions = torch.nn.functional.normalize(torch.randn(4096, 3, generator=generator), dim=-1)
+    density32, rgb32, grads32 = _outputs_and_decoder_grads(fp32, points, directions)
+    density16, rgb16, grads16 = _outputs_and_decoder_grads(bf16, points, directions)
+    assert density16.dtype == rgb16.dtype == torch.float32
+    assert all(p.dtype == torch.float32 and p.grad.dtype == torch.float32 for p in bf16.decoder.parameters())
+    assert torch.allclose(density16, density32, rtol=0.05, atol=1e-4)
+    assert (rgb16 - rgb32).abs().max() < 0.01
+    assert torch.nn.functional.cosine_similarity(grads16, grads32, dim=0) > 0.99
+    # the encoder (C++ or torch kernel) gets float32 gradients either way
+    assert all(p.grad is None or p.grad.dtype == torch.float32 for p in bf16.encoder.parameters())
+
+
+@pytest.mark.parametrize("fast", [True, False])
+def test_auto_precision_uses_bfloat16_only_where_the_cpu_has_it(monkeypatch: pytest.MonkeyPatch, fast: bool) -> None:
+    monkeypatch.setattr(scalar_field, "cpu_bfloat16_is_fast", lambda: fast)
+    assert _field("auto").cpu_bfloat16 is fast
+    assert _field("float32").cpu_bfloat16 is False
+
+
+def _hazy_model(alpha_threshold: float) -> ScalarModel:
+    """A fresh model: a thin uniform haze (density ~exp(-4) per unit) with nothing occluded."""
+    torch.manual_seed(0)
+    config = ScalarModelConfig(field=ScalarFieldConfig(**SMALL_FIELD), num_samples_per_ray=32, alpha_threshold=alpha_threshold)
+    return ScalarModel(config=config, scene_box=SceneBox(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3])), num_train_data=2).eval()
+
+
+def _rays(num_rays: int) -> RayBundle:
+    directions = torch.nn.functional.normalize(torch.randn(num_rays, 3, generator=torch.Generator().manual_seed(2)), dim=-1)
+    return RayBundle(origins=torch.zeros(num_rays, 3), directions=directions, pixel_area=torch.ones(num_rays, 1),
+                     camera_indices=torch.zeros(num_rays, 1, dtype=torch.long))
+
+
+def test_alpha_threshold_skips_only_transparent_samples_and_only_after_the_grid_warm_up() -> None:
+    reference, skipping = _hazy_model(0.0), _hazy_model(0.01)
+    skipping.load_state_dict(reference.state_dict())
+    rays = _rays(256)
+    with torch.no_grad():
+        before_warm_up = skipping(rays)
+        exact = reference(rays)
+        assert torch.equal(before_warm_up["samples_per_ray"], exact["samples_per_ray"])  # nothing skipped while warming up
+        for model in (skipping, reference):  # the grid has warmed up and marked one far corner cell empty
+            model.occupancy.occupied[0] = False
+        skipped = skipping(rays)
+        exact = reference(rays)
+    # the haze's short near intervals are below 1 % opacity; the long far ones are not
+    assert 0 < skipped["samples_per_ray"].mean() < 0.8 * exact["samples_per_ray"].mean()
+    # what is skipped is nearly transparent: a little opacity is lost and the image barely changes
+    # (the near half of each ray holds about 1 - exp(-0.018) ~ 2 % opacity of haze)
+    dropped = exact["accumulation"] - skipped["accumulation"]
+    assert (dropped >= -1e-6).all() and dropped.max() < 0.03
+    assert (skipped["rgb"] - exact["rgb"]).abs().max() < 0.03
+
+
+def test_sample_skipping_starts_with_the_grid_pruning_and_is_restored_from_a_checkpoint() -> None:
+    model = _hazy_model(0.01)
+
+    def ball(unit: torch.Tensor) -> torch.Tensor:
+        return torch.where(torch.linalg.vector_norm(unit - 0.5, dim=-1) < 0.2, 100.0, 0.0)
+
+    model.occupancy.update(0, ball)
+    assert not model.occupancy.pruning  # warm-up: nothing is marked empty, nothing is skipped
+    model.occupancy.update(model.occupancy.warmup_steps, ball)
+    assert model.occupancy.pruning
+    restored = _hazy_model(0.01)
+    restored.load_state_dict(copy.deepcopy(model.state_dict()))
+    assert restored.occupancy.pruning and torch.equal(restored.occupancy.occupied, model.occupancy.occupied)
+
+
