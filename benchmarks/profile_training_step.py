@@ -25,20 +25,13 @@ def main() -> None:
     parser.add_argument("--output-dir", type=Path, default=Path("outputs/profile_training_step"))
     args = parser.parse_args()
 
-    from nerfstudio.configs.method_configs import all_methods
-    from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
+    from scalar_nerfstudio.scripts._benchmark_runner import trainer_config
 
-    config = all_methods["scalar-nerf"]
-    config.pipeline.datamanager.data = args.data
-    config.pipeline.datamanager.dataparser = NerfstudioDataParserConfig(
-        downscale_factor=args.downscale, eval_mode="interval", eval_interval=8
-    )
-    config.max_num_iterations = args.steps
-    config.vis = "tensorboard"
-    config.steps_per_eval_batch = config.steps_per_eval_image = config.steps_per_eval_all_images = 10**9
-    config.steps_per_save = 10**9
-    config.output_dir = args.output_dir
-    config.logging.local_writer.enable = False
+    # the benchmark's trainer set-up: eval every 8th image, no evaluation or checkpoints while training
+    config = trainer_config({
+        "method": "scalar-nerf", "data": str(args.data), "downscale": args.downscale, "output_dir": str(args.output_dir),
+        "overrides": {"max_num_iterations": args.steps},
+    })
     config.set_timestamp()
     trainer = config.setup(local_rank=0, world_size=1)
     trainer.setup()

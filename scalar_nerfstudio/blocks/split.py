@@ -52,8 +52,6 @@ the result does not depend on KMeans' arbitrary label numbering.
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 import warnings
 from collections import Counter
 from collections.abc import Sequence
@@ -63,6 +61,8 @@ from typing import Any
 
 import numpy as np
 from sklearn.cluster import KMeans
+
+from scalar_nerfstudio.atomic_io import atomic_write_text
 
 __all__ = [
     "KMEANS_N_INIT",
@@ -357,27 +357,14 @@ def _split_to_json(split: BlockSplit, image_names: Sequence[str]) -> dict[str, A
 
 
 def save_blocks_json(split: BlockSplit, path: Path, image_names: Sequence[str]) -> None:
-    """Write ``split`` to ``path`` (blocks.json) atomically (temporary file + ``os.replace``).
+    """Write ``split`` to ``path`` (blocks.json) atomically (:func:`atomic_write_text`).
 
     Args:
         split: The split to save.
         path: Destination file; its parent directory is created if needed.
         image_names: File names of all training images, indexed like ``Block.image_indices``.
     """
-    path = Path(path)
-    payload = json.dumps(_split_to_json(split, image_names), indent=2)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        os.fchmod(fd, 0o644)  # mkstemp creates 0600; blocks.json is read by other users' block runs
-        with os.fdopen(fd, "w", encoding="utf-8") as handle:
-            handle.write(payload + "\n")
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(tmp_name, path)
-    except BaseException:
-        Path(tmp_name).unlink(missing_ok=True)
-        raise
+    atomic_write_text(Path(path), json.dumps(_split_to_json(split, image_names), indent=2) + "\n")
 
 
 def _vec3(value: Any, what: str) -> Vec3:

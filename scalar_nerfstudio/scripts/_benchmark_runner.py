@@ -51,7 +51,9 @@ def _set(config: Any, dotted: str, value: Any) -> None:
     setattr(target, name, tuple(value) if isinstance(value, list) else value)
 
 
-def _config(spec: Dict[str, Any]):
+def trainer_config(spec: Dict[str, Any]):
+    """The trainer config of a benchmark run: the method's defaults on ``spec["data"]`` with every
+    8th image held out, no evaluation, checkpoints or local log while training, then ``spec["overrides"]``."""
     from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 
     if spec["method"] == "nerfacto":
@@ -104,7 +106,7 @@ def _trained_modules(model) -> List[torch.nn.Module]:
 
 def run(spec: Dict[str, Any]) -> Dict[str, Any]:
     """Train and evaluate one variant as ``spec`` says; returns the result written to ``spec["result"]``."""
-    config = _config(spec)
+    config = trainer_config(spec)
     config.set_timestamp()
     config.save_config()
     trainer = config.setup(local_rank=0, world_size=1)

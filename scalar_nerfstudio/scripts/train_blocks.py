@@ -34,6 +34,8 @@ from typing import Annotated, Dict, List, Literal, Optional, Tuple
 
 import tyro
 
+from scalar_nerfstudio.atomic_io import atomic_write_text
+
 PROG = "scalar-nerf-train-blocks"
 DONE_MARKER = "DONE.json"
 LOCK_FILE = ".train-blocks.lock"
@@ -397,12 +399,10 @@ def read_done(block_dir: Path, global_checkpoint: Path) -> Tuple[Optional[dict],
 
 
 def write_done(block_dir: Path, run: Path, attempt: int, seconds: float, global_checkpoint: Path) -> None:
-    """Record ``run`` as the block's result: written to a temporary file, then renamed (atomic)."""
+    """Record ``run`` as the block's result, atomically (:func:`atomic_write_text`)."""
     payload = {"run": str(run.relative_to(block_dir)), "attempt": attempt, "seconds": round(seconds, 1),
                "global_checkpoint": str(global_checkpoint)}
-    staging = block_dir / f".{DONE_MARKER}.partial"
-    staging.write_text(json.dumps(payload, indent=2) + "\n")
-    os.replace(staging, block_dir / DONE_MARKER)
+    atomic_write_text(block_dir / DONE_MARKER, json.dumps(payload, indent=2) + "\n")
 
 
 def prepare_blocks(out: Path, blocks: List[int], global_checkpoint: Path) -> Dict[int, BlockState]:
