@@ -2,7 +2,9 @@
 
 Each method trains in its own process for the same wall-clock budget on the same scene and
 split, then renders the eval views. Printed and written as JSON: steps, training rays/s,
-held-out PSNR / SSIM, render time per image, and the mean-training-image baseline.
+held-out PSNR / SSIM, render time per image, and the mean-training-image baseline. Each
+trained model is also scored with the other near-plane rule: nerfstudio's models start
+evaluation rays at the camera (near plane reset to 0), scalar-nerf keeps the training near plane.
 
 nerfacto builds LPIPS (which downloads AlexNet weights) when it is constructed; offline that
 dies, so this benchmark replaces LPIPS by a stub for nerfacto and reports no LPIPS for it.
@@ -20,40 +22,19 @@ import time
 from pathlib import Path
 from typing import Dict, List
 
-RUNNER = r'''
+RUNNER = r"""
 import json, sys, time
 from pathlib import Path
 import torch
+from scalar_nerfstudio.scripts._benchmark_runner import trainer_config
 
-method, data, downscale, seconds, steps, out = sys.argv[1], Path(sys.argv[2]), int(sys.argv[3]), float(sys.argv[4]), int(sys.argv[5]), Path(sys.argv[6])
-if method == "nerfacto":
-    import torchmetrics.image.lpip as lpip
-
-    class NoLPIPS(torch.nn.Module):  # offline: nerfacto's LPIPS would download AlexNet weights
-        def __init__(self, *args, **kwargs):
-            super().__init__()
-
-        def forward(self, *args, **kwargs):
-            return torch.tensor(float("nan"))
-
-    lpip.LearnedPerceptualImagePatchSimilarity = NoLPIPS
-from nerfstudio.configs.method_configs import all_methods
-from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
-
-config = all_methods[method]
-config.pipeline.datamanager.data = data
-config.pipeline.datamanager.dataparser = NerfstudioDataParserConfig(downscale_factor=downscale, eval_mode="interval", eval_interval=8)
-config.machine.device_type = "cpu"
-config.mixed_precision = False
-config.max_num_iterations = steps
-config.vis = "tensorboard"
-config.steps_per_eval_batch = config.steps_per_eval_image = config.steps_per_eval_all_images = 10**9
-config.steps_per_save = 10**9
-config.output_dir = out.parent / "runs"
-config.logging.local_writer.enable = False
-if method == "nerfacto":
-    config.pipeline.model.implementation = "torch"
-    config.pipeline.datamanager.train_num_rays_per_batch = 4096
+method, data, downscale, seconds, steps, out = sys.argv[1], sys.argv[2], int(sys.argv[3]), float(sys.argv[4]), int(sys.argv[5]), Path(sys.argv[6])
+# the benchmark runner's set-up (every 8th image held out, no evaluation or checkpoints while
+# training; LPIPS stubbed out for nerfacto, whose weights would be downloaded), on the CPU
+overrides = {"machine.device_type": "cpu", "mixed_precision": False, "pipeline.datamanager.train_num_rays_per_batch": 4096}
+if method == "scalar-nerf":
+    overrides["max_num_iterations"] = steps
+config = trainer_config({"method": method, "data": data, "downscale": downscale, "output_dir": str(out.parent / "runs"), "overrides": overrides})
 config.set_timestamp()
 trainer = config.setup(local_rank=0, world_size=1)
 trainer.setup()
@@ -79,6 +60,7 @@ metrics = pipeline.get_average_eval_image_metrics()
 num_eval = len(pipeline.datamanager.fixed_indices_eval_dataloader)
 render_ms = 1000.0 * (time.perf_counter() - start) / max(num_eval, 1)
 rays_per_step = pipeline.datamanager.get_train_rays_per_batch()
+collider = pipeline.model.collider
 result = {
     "method": method,
     "steps": clock["steps"],
@@ -89,11 +71,18 @@ result = {
     "render_ms_per_image": render_ms,
     "eval_images": num_eval,
     "threads": torch.get_num_threads(),
+    "near_plane": collider.near_plane,
+    "reset_near_plane": collider.reset_near_plane,
 }
 if method != "nerfacto" and "lpips" in metrics:
     result["lpips"] = metrics["lpips"]
+# the same trained model rendered with the other near-plane rule (nerfstudio resets the near plane
+# to 0 outside training by default; scalar-nerf keeps the training one)
+collider.reset_near_plane = not collider.reset_near_plane
+other = pipeline.get_average_eval_image_metrics()
+result["other_near_plane"] = {"reset_near_plane": collider.reset_near_plane, "psnr": other["psnr"], "ssim": other["ssim"]}
 out.write_text(json.dumps(result))
-'''
+"""
 
 
 def mean_image_baseline(data: Path, downscale: int) -> float:
@@ -134,9 +123,12 @@ def main() -> None:
     baseline = mean_image_baseline(args.data, args.downscale)
 
     print(f"\nscene {args.data.name}, downscale {args.downscale}, eval every 8th image, budget {args.minutes} min, mean-image baseline {baseline:.2f} dB")
-    print(f"{'method':<14}{'steps':>7}{'train s':>9}{'rays/s':>10}{'PSNR':>8}{'SSIM':>7}{'render ms/img':>15}")
+    print(f"{'method':<14}{'steps':>7}{'train s':>9}{'rays/s':>10}{'PSNR':>8}{'SSIM':>7}{'render ms/img':>15}   PSNR / SSIM with the other near-plane rule")
     for r in results:
-        print(f"{r['method']:<14}{r['steps']:>7}{r['train_seconds']:>9.0f}{r['train_rays_per_sec']:>10.0f}{r['psnr']:>8.2f}{r['ssim']:>7.3f}{r['render_ms_per_image']:>15.0f}")
+        other = r["other_near_plane"]
+        rule = "near plane reset to 0" if other["reset_near_plane"] else f"near plane kept at {r['near_plane']}"
+        print(f"{r['method']:<14}{r['steps']:>7}{r['train_seconds']:>9.0f}{r['train_rays_per_sec']:>10.0f}{r['psnr']:>8.2f}{r['ssim']:>7.3f}{r['render_ms_per_image']:>15.0f}"
+              f"   {other['psnr']:.2f} / {other['ssim']:.3f} ({rule})")
     by_name = {r["method"]: r for r in results}
     if {"scalar-nerf", "nerfacto"} <= by_name.keys():
         ours, peer = by_name["scalar-nerf"], by_name["nerfacto"]

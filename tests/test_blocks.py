@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 import torch
 import yaml
+from nerfstudio.cameras.rays import RayBundle
 
 from conftest import BLOCK_STEPS, tiny_trainer, CASTLE, NUM_BLOCKS, free_port, ns_eval, requires_castle, run_dirs, sigkill_after_checkpoint
 from scalar_nerfstudio.blocks.split import load_blocks_json, split_cameras
@@ -270,3 +271,10 @@ def test_block_run_takes_unset_block_settings_from_the_global_run(full_run: Path
     explicit.pipeline.decoder_mode = "frozen"
     explicit._adopt_global_run()
     assert explicit.pipeline.block_steps == 7 and explicit.pipeline.decoder_mode == "frozen"
+
+
+def test_fused_rendering_starts_rays_at_the_training_near_plane(scene: Path, tmp_path: Path) -> None:
+    """The scene model collides rays before the global and block models see them: it keeps the near plane too."""
+    model = _trainer(scene, tmp_path).pipeline.model.eval()
+    rays = RayBundle(origins=torch.zeros(2, 3), directions=torch.eye(3)[:2], pixel_area=torch.ones(2, 1))
+    assert torch.equal(model.collider(rays).nears, torch.full((2, 1), model.config.near_plane))

@@ -6,11 +6,14 @@ import math
 
 import pytest
 import torch
+from nerfstudio.cameras.rays import RayBundle
+from nerfstudio.data.scene_box import SceneBox
 
 from scalar_nerfstudio.engine.schedulers import warmup_exponential_decay_factor
-from scalar_nerfstudio.fields.scalar_field import contract, contract_to_unit_cube
+from scalar_nerfstudio.fields.scalar_field import ScalarFieldConfig, contract, contract_to_unit_cube
 from scalar_nerfstudio.model_components.rendering import render_depth, render_weights
 from scalar_nerfstudio.model_components.sampling import OccupancyGrid, lin_disp_spacing, lin_disp_spacing_inverse, sample_intervals
+from scalar_nerfstudio.models.scalar_model import ScalarModel, ScalarModelConfig
 
 
 def test_contraction_matches_mipnerf360_and_stays_in_the_ball() -> None:
@@ -100,3 +103,44 @@ def test_schedule_warms_up_linearly_then_decays_to_a_tenth() -> None:
     assert factors[1000] == pytest.approx(0.1)
     assert all(isinstance(f, float) and math.isfinite(f) for f in factors)
     assert all(a >= b for a, b in zip(factors[25:], factors[26:]))
+
+
+def _model_with_opaque_ball(reset_near_plane: bool) -> ScalarModel:
+    """A fresh model whose density is an opaque ball of radius 0.04 around the origin, empty elsewhere."""
+    torch.manual_seed(0)
+    field = ScalarFieldConfig(num_levels=4, log2_hashmap_size=12, max_resolution=128, hidden_dim=64)
+    config = ScalarModelConfig(field=field, reset_near_plane=reset_near_plane)
+    model = ScalarModel(config=config, scene_box=SceneBox(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3])), num_train_data=1)
+    density_at_unit = model.field.density_at_unit
+
+    def ball(unit_positions: torch.Tensor):
+        _, geo_features = density_at_unit(unit_positions)
+        world = (unit_positions - 0.5) * 4.0  # inverse contraction inside the unit ball
+        return torch.where(torch.linalg.vector_norm(world, dim=-1) < 0.04, 1e3, 0.0), geo_features
+
+    model.field.density_at_unit = ball
+    return model
+
+
+def _accumulation(model: ScalarModel, origin: tuple, direction: tuple) -> float:
+    rays = RayBundle(
+        origins=torch.tensor([origin]), directions=torch.tensor([direction]), pixel_area=torch.ones(1, 1),
+        camera_indices=torch.zeros(1, 1, dtype=torch.long),
+    )
+    with torch.no_grad():
+        return float(model(rays)["accumulation"])
+
+
+@pytest.mark.parametrize("reset_near_plane", [False, True])
+def test_rendering_keeps_the_training_near_plane_unless_reset(reset_near_plane: bool) -> None:
+    """What lies within the near plane of a camera is never trained from that camera: evaluation and
+    the viewer do not show it either, unless the near plane is reset (nerfstudio's default)."""
+    model = _model_with_opaque_ball(reset_near_plane)
+    assert model.collider.near_plane == 0.05
+    model.train()
+    assert _accumulation(model, (0.0, 0.0, 0.0), (1.0, 0.0, 0.0)) < 1e-3  # training never sees it from inside
+    model.eval()
+    inside = _accumulation(model, (0.0, 0.0, 0.0), (1.0, 0.0, 0.0))
+    assert (inside > 0.99) if reset_near_plane else (inside < 1e-3)
+    # from farther than the near plane the ball is seen either way
+    assert _accumulation(model, (-0.5, 0.0, 0.0), (1.0, 0.0, 0.0)) > 0.99

@@ -19,6 +19,7 @@ from typing import Dict, List, Literal, Optional, Tuple, Type
 
 import torch
 from nerfstudio.cameras.rays import RayBundle
+from nerfstudio.model_components.scene_colliders import NearFarCollider
 from nerfstudio.models.base_model import Model, ModelConfig
 from torch import Tensor
 from torch.nn import Parameter
@@ -55,6 +56,12 @@ def _neutralise_bad_rays(origins: Tensor, directions: Tensor, nears: Tensor, far
     return origins, directions, nears, fars
 
 
+def near_far_collider(config: "ScalarModelConfig") -> NearFarCollider:
+    """Rays from ``config.near_plane`` to ``config.far_plane``; outside training the near plane is
+    kept, unless ``config.reset_near_plane`` (nerfstudio's default) starts rays at the camera."""
+    return NearFarCollider(near_plane=config.near_plane, far_plane=config.far_plane, reset_near_plane=config.reset_near_plane)
+
+
 @dataclass
 class ScalarModelConfig(ModelConfig):
     """SCALAR-NeRF model (global or local)."""
@@ -64,6 +71,12 @@ class ScalarModelConfig(ModelConfig):
     """Encoder / decoder hyper-parameters."""
     near_plane: float = 0.05
     """Ray start (world units of the normalised scene)."""
+    reset_near_plane: bool = False
+    """Start rays at the camera (near 0) when not training, as nerfstudio's colliders do by default.
+    Off: evaluation, ns-render and the viewer start rays at ``near_plane`` like training does. No
+    training camera ever sees the space within ``near_plane`` of itself, and a novel camera that
+    stands where only distant cameras looked through would render whatever the field put there
+    right in front of it as a veil (castle-P30's eval image 8, see docs/benchmarks.md)."""
     far_plane: float = 1000.0
     """Ray end; far points contract to the boundary of the unit cube."""
     num_samples_per_ray: int = 64
@@ -105,6 +118,7 @@ class ScalarModel(Model):
         self.config.enable_collider = True
         self.config.collider_params = {"near_plane": self.config.near_plane, "far_plane": self.config.far_plane}
         super().populate_modules()
+        self.collider = near_far_collider(self.config)
         centre = torch.as_tensor(self.kwargs.get("region_centre", (0.0, 0.0, 0.0)), dtype=torch.float32).reshape(3)
         radius = float(self.kwargs.get("region_radius", 1.0))
         if not (torch.isfinite(centre).all() and radius > 0 and radius < float("inf")):

@@ -23,7 +23,7 @@ from scalar_nerfstudio.blocks.split import Block, BlockSplit
 from scalar_nerfstudio.blocks.visibility import aabb_in_frustum
 from scalar_nerfstudio.fusion import ParsedFusionMode, fuse_outputs, nearest_block, parse_fusion_mode
 from scalar_nerfstudio.metrics import psnr
-from scalar_nerfstudio.models.scalar_model import ScalarModel, ScalarModelConfig
+from scalar_nerfstudio.models.scalar_model import ScalarModel, ScalarModelConfig, near_far_collider
 from scalar_nerfstudio.viewer import BLOCK_PALETTE, GLOBAL_COLOUR
 
 DecoderMode = Literal["finetune", "frozen", "independent"]
@@ -75,6 +75,7 @@ class ScalarSceneModel(Model):
         self.config.enable_collider = True
         self.config.collider_params = {"near_plane": self.config.near_plane, "far_plane": self.config.far_plane}
         super().populate_modules()
+        self.collider = near_far_collider(self.config)
         self.split: BlockSplit = self.kwargs["split"]
         self.block_ids: Tuple[int, ...] = tuple(self.kwargs.get("block_ids", range(self.split.num_blocks)))
         self.decoder_mode: DecoderMode = self.kwargs.get("decoder_mode", "finetune")
