@@ -12,9 +12,14 @@ from pathlib import Path
 from typing import List, Optional
 
 import pytest
+import torch
+from nerfstudio.cameras.rays import RayBundle
+from nerfstudio.data.scene_box import SceneBox
 
 from scalar_nerfstudio.data.synthetic_scene import write_scene
 from scalar_nerfstudio.engine.trainer import latest_checkpoint_step
+from scalar_nerfstudio.fields.scalar_field import ScalarFieldConfig
+from scalar_nerfstudio.models.scalar_model import ScalarModel, ScalarModelConfig
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
@@ -22,6 +27,25 @@ CASTLE = SHARED_DATA / "castle-P30"
 
 # A short run that fits the suite's budget on 2 cores (see README "Tests").
 TRAIN_STEPS = int(os.environ.get("SCALAR_TEST_TRAIN_STEPS", "200"))
+
+
+#: A field small enough for unit tests: 4 hash levels of 2^12 rows, finest resolution 128.
+SMALL_FIELD = dict(num_levels=4, log2_hashmap_size=12, max_resolution=128, hidden_dim=64)
+
+
+def small_scalar_model(hidden_dim: int = 64, num_train_data: int = 2, **config: object) -> ScalarModel:
+    """A fresh :class:`ScalarModel` (seed 0) with :data:`SMALL_FIELD` in the [-1, 1]^3 scene box;
+    ``config`` sets other :class:`ScalarModelConfig` fields (e.g. ``num_samples_per_ray``)."""
+    torch.manual_seed(0)
+    field = ScalarFieldConfig(**{**SMALL_FIELD, "hidden_dim": hidden_dim})
+    model_config = ScalarModelConfig(field=field, **config)
+    return ScalarModel(config=model_config, scene_box=SceneBox(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3])), num_train_data=num_train_data)
+
+
+def ray_bundle(origins: torch.Tensor, directions: torch.Tensor) -> RayBundle:
+    """Rays [N, 3] origins and directions of training image 0, unit pixel area, no near/far set."""
+    n = origins.shape[0]
+    return RayBundle(origins=origins, directions=directions, pixel_area=torch.ones(n, 1), camera_indices=torch.zeros(n, 1, dtype=torch.long))
 
 
 def free_port() -> int:

@@ -10,13 +10,11 @@ import copy
 import pytest
 import torch
 from nerfstudio.cameras.rays import RayBundle
-from nerfstudio.data.scene_box import SceneBox
 
+from conftest import SMALL_FIELD, ray_bundle, small_scalar_model
 from scalar_nerfstudio.fields import scalar_field
 from scalar_nerfstudio.fields.scalar_field import ScalarField, ScalarFieldConfig
-from scalar_nerfstudio.models.scalar_model import ScalarModel, ScalarModelConfig
-
-SMALL_FIELD = dict(num_levels=4, log2_hashmap_size=12, max_resolution=128, hidden_dim=64)
+from scalar_nerfstudio.models.scalar_model import ScalarModel
 
 
 def _field(precision: str) -> ScalarField:
@@ -60,15 +58,12 @@ def test_auto_precision_uses_bfloat16_only_where_the_cpu_has_it(monkeypatch: pyt
 
 def _hazy_model(alpha_threshold: float) -> ScalarModel:
     """A fresh model: a thin uniform haze (density ~exp(-4) per unit) with nothing occluded."""
-    torch.manual_seed(0)
-    config = ScalarModelConfig(field=ScalarFieldConfig(**SMALL_FIELD), num_samples_per_ray=32, alpha_threshold=alpha_threshold)
-    return ScalarModel(config=config, scene_box=SceneBox(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3])), num_train_data=2).eval()
+    return small_scalar_model(num_samples_per_ray=32, alpha_threshold=alpha_threshold).eval()
 
 
 def _rays(num_rays: int) -> RayBundle:
     directions = torch.nn.functional.normalize(torch.randn(num_rays, 3, generator=torch.Generator().manual_seed(2)), dim=-1)
-    return RayBundle(origins=torch.zeros(num_rays, 3), directions=directions, pixel_area=torch.ones(num_rays, 1),
-                     camera_indices=torch.zeros(num_rays, 1, dtype=torch.long))
+    return ray_bundle(torch.zeros(num_rays, 3), directions)
 
 
 def test_alpha_threshold_skips_only_transparent_samples_and_only_after_the_grid_warm_up() -> None:
@@ -105,5 +100,3 @@ def test_sample_skipping_starts_with_the_grid_pruning_and_is_restored_from_a_che
     restored = _hazy_model(0.01)
     restored.load_state_dict(copy.deepcopy(model.state_dict()))
     assert restored.occupancy.pruning and torch.equal(restored.occupancy.occupied, model.occupancy.occupied)
-
-

@@ -6,14 +6,13 @@ import math
 
 import pytest
 import torch
-from nerfstudio.cameras.rays import RayBundle
-from nerfstudio.data.scene_box import SceneBox
 
+from conftest import ray_bundle, small_scalar_model
 from scalar_nerfstudio.engine.schedulers import warmup_exponential_decay_factor
-from scalar_nerfstudio.fields.scalar_field import ScalarFieldConfig, contract, contract_to_unit_cube
+from scalar_nerfstudio.fields.scalar_field import contract, contract_to_unit_cube
 from scalar_nerfstudio.model_components.rendering import render_depth, render_weights
 from scalar_nerfstudio.model_components.sampling import OccupancyGrid, lin_disp_spacing, lin_disp_spacing_inverse, sample_intervals
-from scalar_nerfstudio.models.scalar_model import ScalarModel, ScalarModelConfig
+from scalar_nerfstudio.models.scalar_model import ScalarModel
 
 
 def test_contraction_matches_mipnerf360_and_stays_in_the_ball() -> None:
@@ -107,10 +106,7 @@ def test_schedule_warms_up_linearly_then_decays_to_a_tenth() -> None:
 
 def _model_with_opaque_ball(reset_near_plane: bool) -> ScalarModel:
     """A fresh model whose density is an opaque ball of radius 0.04 around the origin, empty elsewhere."""
-    torch.manual_seed(0)
-    field = ScalarFieldConfig(num_levels=4, log2_hashmap_size=12, max_resolution=128, hidden_dim=64)
-    config = ScalarModelConfig(field=field, reset_near_plane=reset_near_plane)
-    model = ScalarModel(config=config, scene_box=SceneBox(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3])), num_train_data=1)
+    model = small_scalar_model(num_train_data=1, reset_near_plane=reset_near_plane)
     density_at_unit = model.field.density_at_unit
 
     def ball(unit_positions: torch.Tensor):
@@ -123,12 +119,8 @@ def _model_with_opaque_ball(reset_near_plane: bool) -> ScalarModel:
 
 
 def _accumulation(model: ScalarModel, origin: tuple, direction: tuple) -> float:
-    rays = RayBundle(
-        origins=torch.tensor([origin]), directions=torch.tensor([direction]), pixel_area=torch.ones(1, 1),
-        camera_indices=torch.zeros(1, 1, dtype=torch.long),
-    )
     with torch.no_grad():
-        return float(model(rays)["accumulation"])
+        return float(model(ray_bundle(torch.tensor([origin]), torch.tensor([direction])))["accumulation"])
 
 
 @pytest.mark.parametrize("reset_near_plane", [False, True])

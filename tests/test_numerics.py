@@ -9,13 +9,12 @@ import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from nerfstudio.cameras.rays import RayBundle
-from nerfstudio.data.scene_box import SceneBox
 
+from conftest import ray_bundle, small_scalar_model
 from scalar_nerfstudio.encodings.hash_grid import HashGridEncoding
-from scalar_nerfstudio.fields.scalar_field import ScalarFieldConfig, contract, contract_to_unit_cube
+from scalar_nerfstudio.fields.scalar_field import contract, contract_to_unit_cube
 from scalar_nerfstudio.model_components.rendering import render_weights
-from scalar_nerfstudio.models.scalar_model import ScalarModel, ScalarModelConfig
+from scalar_nerfstudio.models.scalar_model import ScalarModel
 
 EXTREME = st.one_of(
     st.floats(allow_nan=True, allow_infinity=True, width=32),
@@ -77,15 +76,7 @@ def test_volume_rendering_weights_are_a_sub_distribution(samples) -> None:
 
 
 def _tiny_model() -> ScalarModel:
-    config = ScalarModelConfig(
-        field=ScalarFieldConfig(num_levels=4, log2_hashmap_size=12, max_resolution=128, hidden_dim=32), num_samples_per_ray=16
-    )
-    return ScalarModel(config=config, scene_box=SceneBox(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3])), num_train_data=2)
-
-
-def _rays(origins: torch.Tensor, directions: torch.Tensor) -> RayBundle:
-    n = origins.shape[0]
-    return RayBundle(origins=origins, directions=directions, pixel_area=torch.ones(n, 1), camera_indices=torch.zeros(n, 1, dtype=torch.long))
+    return small_scalar_model(hidden_dim=32, num_samples_per_ray=16)
 
 
 def test_rays_with_nan_or_inf_are_reported_and_render_background() -> None:
@@ -94,7 +85,7 @@ def test_rays_with_nan_or_inf_are_reported_and_render_background() -> None:
     directions = torch.tensor([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [math.inf, 0.0, 0.0], [0.0, 1.0, 0.0]])
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        outputs = model(_rays(origins, directions))
+        outputs = model(ray_bundle(origins, directions))
     assert any("2 of 4 rays have a NaN/inf" in str(w.message) for w in caught)
     for value in outputs.values():
         assert torch.isfinite(value).all()
@@ -107,7 +98,7 @@ def test_bf16_autocast_on_cpu_stays_finite() -> None:
     origins = torch.zeros(64, 3)
     directions = torch.nn.functional.normalize(torch.randn(64, 3), dim=-1)
     with torch.autocast("cpu", dtype=torch.bfloat16):
-        outputs = model(_rays(origins, directions))
+        outputs = model(ray_bundle(origins, directions))
         loss = outputs["rgb"].float().square().mean() + outputs["distortion"].float().mean()
     loss.backward()
     assert all(torch.isfinite(v).all() for v in outputs.values())
@@ -120,5 +111,5 @@ def test_fp16_autocast_on_cuda_stays_finite() -> None:
     origins = torch.zeros(64, 3, device="cuda")
     directions = torch.nn.functional.normalize(torch.randn(64, 3, device="cuda"), dim=-1)
     with torch.autocast("cuda", dtype=torch.float16):
-        outputs = model(_rays(origins, directions))
+        outputs = model(ray_bundle(origins, directions))
     assert all(torch.isfinite(v).all() for v in outputs.values())
