@@ -115,6 +115,13 @@ def _wait_for_change(driver, viewport, before: np.ndarray, timeout: float = 180.
         time.sleep(1.0)
 
 
+def _wait_for(driver, viewport, condition, timeout: float = 180.0) -> None:
+    """Wait until ``condition(render area)`` holds (or the time-out; the caller asserts what it needs)."""
+    deadline = time.time() + timeout
+    while time.time() < deadline and not condition(_screenshot(driver)[viewport]):
+        time.sleep(1.0)
+
+
 def _colourfulness(image: np.ndarray) -> float:
     """Mean spread between an RGB pixel's largest and smallest channel (0 for greys)."""
     return float((image.max(axis=-1) - image.min(axis=-1)).mean())
@@ -171,7 +178,9 @@ def test_browser_shows_a_render_that_changes_with_fusion(full_run: Path) -> None
         _wait_for_change(driver, viewport, rgb_render)
         blocks_render = _settled(driver, viewport)
         _choose(driver, "Fusion", "global-only")
-        _wait_for_change(driver, viewport, blocks_render)
+        # A render of the global model and both blocks can take longer than _settled's 3 s window,
+        # so wait for the grey of global-only (or the time-out) before taking the settled image.
+        _wait_for(driver, viewport, lambda image: _colourfulness(image) <= _colourfulness(blocks_render) - 10.0)
         global_only_render = _settled(driver, viewport)
         assert _colourfulness(blocks_render) > _colourfulness(global_only_render) + 10.0, "fusion did not change the block colours"
         assert np.abs(global_only_render - blocks_render).mean() > 5.0, "switching the fusion did not change the image"
