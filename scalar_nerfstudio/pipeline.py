@@ -11,7 +11,7 @@ from __future__ import annotations
 import gc
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Dict, List, Literal, Optional, Sequence, Tuple, Type
+from typing import Dict, List, Literal, Optional, Tuple, Type
 
 import torch
 from nerfstudio.data.datamanagers.base_datamanager import DataManager
@@ -20,11 +20,12 @@ from nerfstudio.pipelines.base_pipeline import Pipeline, VanillaPipeline, Vanill
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch.cuda.amp.grad_scaler import GradScaler
 
-from scalar_nerfstudio.blocks.capacity import BlockCapacity, LayoutScale, auto_num_blocks, block_capacity, layout_scale
-from scalar_nerfstudio.blocks.split import BlockSplit, BlockSplitError, load_blocks_json, split_cameras
+from scalar_nerfstudio.blocks.capacity import BlockCapacity, LayoutScale, auto_num_blocks, layout_scale
+from scalar_nerfstudio.blocks.plan import BlockPlan, PlanSettings, load_plan, plan_blocks
+from scalar_nerfstudio.blocks.split import BlockSplit, BlockSplitError, format_split_table, load_blocks_json
 from scalar_nerfstudio.data.datamanager import ScalarDataManagerConfig, camera_centres
 from scalar_nerfstudio.viewer import BlockOverlay, fusion_dropdown
-from scalar_nerfstudio.models.scene_model import DecoderMode, ScalarSceneModel, ScalarSceneModelConfig, held_blocks
+from scalar_nerfstudio.models.scene_model import DecoderMode, ScalarSceneModel, ScalarSceneModelConfig
 
 
 @dataclass(frozen=True)
@@ -99,6 +100,22 @@ class ScalarPipelineConfig(VanillaPipelineConfig):
     blocks_json: Optional[Path] = None
     """Use this split (a run's blocks.json) instead of computing one (set by scalar-nerf-block)."""
 
+    run_plan: Optional[Path] = None
+    """The run's own block plan (its blocks.json), recorded in config.yml when training starts: every
+    later load of the run (resume, ns-eval, ns-render, the viewer, ns-export) reads K, the split and
+    the block capacities back from it instead of deciding them again."""
+
+    def plan_settings(self) -> PlanSettings:
+        """The options a block plan is decided from (blocks/plan.py)."""
+        return PlanSettings(
+            num_blocks=self.num_blocks, log2_hashmap_size=self.model.field.log2_hashmap_size,
+            max_auto_blocks=self.max_auto_blocks, auto_min_images_per_block=self.auto_min_images_per_block,
+            aabb_scale=tuple(self.aabb_scale), split_seed=self.split_seed, min_images_per_block=self.min_images_per_block,
+            min_overlap_images=self.min_overlap_images, only_block=self.only_block,
+            block_log2_hashmap_size=self.block_log2_hashmap_size, block_log2_hashmap_bounds=tuple(self.block_log2_hashmap_bounds),
+            block_max_resolution=self.block_max_resolution, block_max_resolution_bounds=tuple(self.block_max_resolution_bounds),
+        )
+
     def automatic_num_blocks(self, scale: LayoutScale, num_images: int) -> int:
         """The automatic K for a camera layout of ``num_images`` training images (blocks/capacity.py)."""
         return auto_num_blocks(scale, self.model.field.log2_hashmap_size, num_images, self.auto_min_images_per_block, self.max_auto_blocks)
@@ -139,18 +156,9 @@ class ScalarPipeline(VanillaPipeline):
         self.datamanager: DataManager = config.datamanager.setup(device=device, test_mode=test_mode, world_size=1, local_rank=0)
         self.datamanager.to(device)
         parsed = self.datamanager.train_dataparser_outputs
-        self.image_names: List[str] = _image_names(parsed.image_filenames, config.datamanager.data)
-        self.layout_scale: LayoutScale = _layout_scale(parsed)
-        self.auto_num_blocks: Optional[int] = None
-        """The automatic K, when K was not given (and no split was)."""
-        if config.num_blocks is None and config.blocks_json is None and config.only_block is None:
-            self.auto_num_blocks = config.automatic_num_blocks(self.layout_scale, len(parsed.image_filenames))
-        self.split: BlockSplit = self._block_split(camera_centres(parsed).double().numpy())
-        # Automatic K = 1: one block would repeat the global model, so none is allocated or trained.
-        single_model = self.auto_num_blocks == 1
-        self.phases: List[Phase] = config.phases(self.split.num_blocks, train_blocks=False if single_model else None)
-        block_ids = () if single_model else held_blocks(self.split, config.only_block)
-        self.block_capacities: Dict[int, BlockCapacity] = self._block_capacities(parsed, block_ids)
+        self.plan: BlockPlan = self._block_plan(parsed)
+        block_ids = self.plan.held_blocks
+        self.phases: List[Phase] = config.phases(self.split.num_blocks, train_blocks=False if self.plan.single_model else None)
         self._model = config.model.setup(
             scene_box=self.datamanager.train_dataset.scene_box,
             num_train_data=len(self.datamanager.train_dataset),
@@ -159,7 +167,7 @@ class ScalarPipeline(VanillaPipeline):
             grad_scaler=grad_scaler,
             split=self.split,
             block_ids=block_ids,
-            block_capacities=self.block_capacities,
+            block_capacities=self.plan.capacities,
             decoder_mode=config.decoder_mode,
         )
         self.model.to(device)
@@ -173,41 +181,61 @@ class ScalarPipeline(VanillaPipeline):
         self._device = device
 
     # ---------------------------------------------------------------------------- set-up
-    def _block_split(self, centres) -> BlockSplit:
-        if self.config.blocks_json is not None:
-            split, names = load_blocks_json(Path(self.config.blocks_json))
-            if names != self.image_names:
+    def _block_plan(self, parsed) -> BlockPlan:
+        """The run's own plan when it has one (``run_plan``), else one decided from the parsed cameras."""
+        names = _image_names(parsed.image_filenames, self.config.datamanager.data)
+        if self.config.run_plan is not None:
+            plan = load_plan(Path(self.config.run_plan))
+            if len(plan.image_names) != len(names):
                 raise BlockSplitError(
-                    f"{self.config.blocks_json} lists {len(names)} training images that differ from the "
-                    f"{len(self.image_names)} parsed from {self.config.datamanager.data} (different scene or dataparser options)"
+                    f"{self.config.run_plan} was planned for {len(plan.image_names)} training images, but "
+                    f"{len(names)} are parsed from {self.config.datamanager.data} (different scene or dataparser options)"
                 )
-            return split
-        return split_cameras(
-            centres,
-            self.config.num_blocks if self.auto_num_blocks is None else self.auto_num_blocks,
-            aabb_scale=self.config.aabb_scale,
-            seed=self.config.split_seed,
-            min_images_per_block=self.config.min_images_per_block,
-            min_overlap_images=self.config.min_overlap_images,
+            return plan
+        given = None
+        if self.config.blocks_json is not None:
+            given, given_names = load_blocks_json(Path(self.config.blocks_json))
+            if given_names != names:
+                raise BlockSplitError(
+                    f"{self.config.blocks_json} lists {len(given_names)} training images that differ from the "
+                    f"{len(names)} parsed from {self.config.datamanager.data} (different scene or dataparser options)"
+                )
+        poses = parsed.cameras.camera_to_worlds.double()
+        cameras = parsed.cameras
+        return plan_blocks(
+            centres=poses[:, :3, 3].numpy(),
+            directions=(-poses[:, :3, 2]).numpy(),  # optical axis: -z of the OpenGL pose
+            focal_px=cameras.fx.reshape(-1).double().numpy(),
+            image_pixels=(cameras.width * cameras.height).reshape(-1).tolist(),
+            image_names=names,
+            settings=self.config.plan_settings(),
+            given_split=given,
         )
 
-    def _block_capacities(self, parsed, block_ids: Sequence[int]) -> Dict[int, BlockCapacity]:
-        """Table size and finest resolution of each held block (automatic unless set in the config)."""
-        cameras = parsed.cameras
-        pixels = (cameras.width * cameras.height).reshape(-1).tolist()
-        capacities = {}
-        for index in block_ids:
-            block = self.split.blocks[index]
-            extent = max(hi - lo for lo, hi in zip(block.aabb_min, block.aabb_max))
-            auto = block_capacity(
-                self.layout_scale, extent, int(sum(pixels[i] for i in block.image_indices)),
-                self.config.block_log2_hashmap_bounds, self.config.block_max_resolution_bounds,
-            )
-            capacities[index] = BlockCapacity(
-                log2_hashmap_size=auto.log2_hashmap_size if self.config.block_log2_hashmap_size is None else self.config.block_log2_hashmap_size,
-                max_resolution=auto.max_resolution if self.config.block_max_resolution is None else self.config.block_max_resolution,
-            )
-        return capacities
+    @property
+    def split(self) -> BlockSplit:
+        """The blocks of the training images."""
+        return self.plan.split
+
+    @property
+    def image_names(self) -> List[str]:
+        """Training image names, as stored in blocks.json."""
+        return list(self.plan.image_names)
+
+    @property
+    def layout_scale(self) -> LayoutScale:
+        """How large the camera layout looks at the training resolution."""
+        return self.plan.layout
+
+    @property
+    def auto_num_blocks(self) -> Optional[int]:
+        """The automatic K, when K was not given (and no split was)."""
+        return self.plan.auto_num_blocks
+
+    @property
+    def block_capacities(self) -> Dict[int, BlockCapacity]:
+        """Table size and finest resolution of each held block."""
+        return self.plan.capacities
 
     def _load_global_model(self, checkpoint: Path, device: str) -> None:
         """Load the global model's weights (only those) from another run's checkpoint."""
@@ -280,6 +308,29 @@ class ScalarPipeline(VanillaPipeline):
         phase = self._enter_phase(step)
         self.model.phase_model(phase.block)._update_occupancy(step - phase.start_step)
 
+    def plan_report(self) -> str:
+        """The split, the automatic K, the block capacities and the phases, for the training log."""
+        lines = [format_split_table(self.split, self.image_names)]
+        pixels, log2_size = self.layout_scale.layout_pixels, self.config.model.field.log2_hashmap_size
+        if self.auto_num_blocks is not None:
+            lines.append(
+                f"automatic K = {self.auto_num_blocks}: the camera layout is {pixels:.0f} training pixels across at the "
+                f"viewing distance (R^2 / T = {pixels ** 2 / 2 ** log2_size:.2f} for T = 2^{log2_size})"
+                + ("; one model suffices, no block is trained" if self.plan.single_model else "")
+            )
+        for index, capacity in self.block_capacities.items():
+            lines.append(f"block {index}: table 2^{capacity.log2_hashmap_size}, finest resolution {capacity.max_resolution}")
+        lines.append("phases: " + ", ".join(f"{p.name}: steps {p.start_step}-{p.end_step - 1}" for p in self.phases if p.num_steps > 0))
+        return "\n".join(lines)
+
+    def get_average_eval_image_metrics(
+        self, step: Optional[int] = None, output_path: Optional[Path] = None, get_std: bool = False
+    ) -> Dict[str, float]:
+        """nerfstudio's average over the eval images, also printed (``ns-eval`` itself only says where it saved them)."""
+        metrics = super().get_average_eval_image_metrics(step=step, output_path=output_path, get_std=get_std)
+        CONSOLE.print(format_eval_metrics(metrics, str(self.model.fusion_mode)))
+        return metrics
+
     def param_group_phases(self) -> dict:
         """For each optimiser parameter group: (template key in ``optimizers``, its phase)."""
         phase_of_block = {phase.block: phase for phase in self.phases}
@@ -295,7 +346,7 @@ class ScalarPipeline(VanillaPipeline):
         return templates
 
 
-def _layout_scale(parsed) -> LayoutScale:
+def parsed_layout_scale(parsed) -> LayoutScale:
     """:class:`LayoutScale` of the parsed training cameras (optical axis: -z of the OpenGL pose)."""
     poses = parsed.cameras.camera_to_worlds.double()
     return layout_scale(poses[:, :3, 3].numpy(), (-poses[:, :3, 2]).numpy(), parsed.cameras.fx.reshape(-1).double().numpy())
@@ -312,3 +363,16 @@ def _image_names(filenames: List[Path], data: Optional[Path]) -> List[str]:
         resolved = Path(path).resolve()
         names.append(str(resolved.relative_to(root)) if root is not None and resolved.is_relative_to(root) else resolved.name)
     return names
+
+
+def format_eval_metrics(metrics: Dict[str, float], fusion: str) -> str:
+    """One line: image count, fusion, PSNR / SSIM / LPIPS (with std when present) and time per image."""
+    parts = []
+    for key, label, digits in (("psnr", "PSNR", 2), ("ssim", "SSIM", 3), ("lpips", "LPIPS", 3)):
+        if key in metrics:
+            std = f" ± {metrics[key + '_std']:.{digits}f}" if f"{key}_std" in metrics else ""
+            parts.append(f"{label} {metrics[key]:.{digits}f}{std}")
+    if "lpips" not in metrics:
+        parts.append("LPIPS skipped")
+    timing = f", {1.0 / metrics['fps']:.2f} s/image" if metrics.get("fps") else ""
+    return f"eval ({fusion} fusion): " + ", ".join(parts) + timing

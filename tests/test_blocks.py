@@ -19,7 +19,7 @@ from nerfstudio.cameras.rays import RayBundle
 
 from conftest import BLOCK_STEPS, tiny_trainer, CASTLE, NUM_BLOCKS, free_port, ns_eval, requires_castle, run_dirs, sigkill_after_checkpoint
 from scalar_nerfstudio.blocks.split import load_blocks_json, split_cameras
-from scalar_nerfstudio.engine.trainer import latest_checkpoint_step
+from scalar_nerfstudio.runs import latest_checkpoint_step
 from scalar_nerfstudio.method_configs import scalar_nerf
 
 def _pipeline_state(run: Path) -> Dict[str, torch.Tensor]:

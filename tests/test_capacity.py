@@ -93,11 +93,11 @@ def _parsed(scene: Path, downscale: int):
 @pytest.mark.skipif(not (CASTLE.is_dir() and FOX.is_dir()), reason="castle-P30 / fox not found in ../shared/data")
 def test_real_scenes_fox_one_block_castle_several() -> None:
     """The issue's examples, through nerfstudio's dataparser (the training frame and focal lengths)."""
-    from scalar_nerfstudio.pipeline import _layout_scale
+    from scalar_nerfstudio.pipeline import parsed_layout_scale
 
     def k(scene: Path, downscale: int) -> int:
         parsed = _parsed(scene, downscale)
-        return auto_num_blocks(_layout_scale(parsed), 19, len(parsed.image_filenames), 6, 8)
+        return auto_num_blocks(parsed_layout_scale(parsed), 19, len(parsed.image_filenames), 6, 8)
 
     assert k(FOX, 1) == 1
     assert k(CASTLE, 1) == 4  # nerfstudio's default resolution for castle-P30 (768 x 512)

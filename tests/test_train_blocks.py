@@ -21,7 +21,7 @@ import yaml
 
 from conftest import TINY, ns_eval, ns_train_command, run_dirs
 from scalar_nerfstudio.blocks.split import save_blocks_json, split_cameras
-from scalar_nerfstudio.engine.trainer import latest_checkpoint_step
+from scalar_nerfstudio.runs import latest_checkpoint_step
 from scalar_nerfstudio.scripts import train_blocks
 from scalar_nerfstudio.scripts.train_blocks import (
     DONE_MARKER, GlobalRun, LocalExecutor, block_command, default_cpus_per_block, main, prepare_blocks, thread_env, write_done,

@@ -74,6 +74,7 @@ __all__ = [
     "format_split_table",
     "load_blocks_json",
     "save_blocks_json",
+    "split_to_json",
     "split_cameras",
 ]
 
@@ -327,7 +328,7 @@ def _check_min_size(blocks: Sequence[Block], min_images: int, num_blocks: int, n
 # --------------------------------------------------------------------------- blocks.json
 
 
-def _split_to_json(split: BlockSplit, image_names: Sequence[str]) -> dict[str, Any]:
+def split_to_json(split: BlockSplit, image_names: Sequence[str]) -> dict[str, Any]:
     """Serialisable dict of ``split`` with the image names of all training images."""
     names = [str(n) for n in image_names]
     max_index = max((max(b.image_indices) for b in split.blocks if b.image_indices), default=-1)
@@ -364,7 +365,7 @@ def save_blocks_json(split: BlockSplit, path: Path, image_names: Sequence[str]) 
         path: Destination file; its parent directory is created if needed.
         image_names: File names of all training images, indexed like ``Block.image_indices``.
     """
-    atomic_write_text(Path(path), json.dumps(_split_to_json(split, image_names), indent=2) + "\n")
+    atomic_write_text(Path(path), json.dumps(split_to_json(split, image_names), indent=2) + "\n")
 
 
 def _vec3(value: Any, what: str) -> Vec3:

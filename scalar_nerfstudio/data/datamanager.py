@@ -4,6 +4,10 @@ Every block shares the global model's world frame: the dataparser orients, centr
 poses of *all* frames before the train/eval split, so parsing the scene again and keeping a subset
 of the training images gives the block's images in the same frame. Only the subset's images are
 loaded into memory, so memory stays bounded by the largest block, not by the number of blocks.
+
+Images are read as 8-bit RGB whatever their kind (``ScalarInputDataset``): grayscale, palette,
+16-bit and CMYK images are converted, and transparent ones composited over ``alpha_background``, in
+memory (the scene check in ``data/validation.py`` accepts them and logs one line saying so).
 """
 
 from __future__ import annotations
@@ -11,11 +15,16 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 from typing import Optional, Tuple, Type
 
+import numpy as np
+import numpy.typing as npt
 import torch
+from PIL import Image
 from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
 from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManager, VanillaDataManagerConfig
 from nerfstudio.data.datasets.base_dataset import InputDataset
 from torch import Tensor
+
+from scalar_nerfstudio.data.validation import to_rgb_array
 
 
 def subset_dataparser_outputs(outputs: DataparserOutputs, image_indices: Tuple[int, ...]) -> DataparserOutputs:
@@ -47,6 +56,26 @@ def camera_centres(outputs: DataparserOutputs) -> Tensor:
     return outputs.cameras.camera_to_worlds[:, :3, 3].clone()
 
 
+class ScalarInputDataset(InputDataset):
+    """nerfstudio's InputDataset, reading every image as 8-bit RGB [H, W, 3].
+
+    nerfstudio's own reads the raw pixels: an RGBA image beside RGB ones fails to stack, a palette
+    image gives its palette indices as grey levels, and a 16-bit one wraps around in uint8.
+    """
+
+    alpha_background: Tuple[float, float, float] = (1.0, 1.0, 1.0)
+    """Colour transparent pixels are composited over (set by the datamanager)."""
+
+    def get_numpy_image(self, image_idx: int) -> npt.NDArray[np.uint8]:
+        with Image.open(self._dataparser_outputs.image_filenames[image_idx]) as pil_image:
+            image = to_rgb_array(pil_image, self.alpha_background)
+        if self.scale_factor != 1.0:
+            height, width = image.shape[:2]
+            newsize = (int(width * self.scale_factor), int(height * self.scale_factor))
+            image = np.asarray(Image.fromarray(image).resize(newsize, resample=Image.Resampling.BILINEAR), dtype=np.uint8)
+        return image
+
+
 @dataclass
 class ScalarDataManagerConfig(VanillaDataManagerConfig):
     """nerfstudio's VanillaDataManager, optionally over a subset of the training images."""
@@ -54,16 +83,27 @@ class ScalarDataManagerConfig(VanillaDataManagerConfig):
     _target: Type = field(default_factory=lambda: ScalarDataManager)
     image_subset: Optional[Tuple[int, ...]] = None
     """Indices of the training images to load (None: all). Set by the pipeline for a block."""
+    alpha_background: Tuple[float, float, float] = (1.0, 1.0, 1.0)
+    """RGB in [0, 1] that transparent pixels (RGBA, grayscale+alpha, transparent palette images) are
+    composited over, in memory (the scene folder is not changed)."""
 
 
-class ScalarDataManager(VanillaDataManager[InputDataset]):
+class ScalarDataManager(VanillaDataManager[ScalarInputDataset]):
     """VanillaDataManager whose training dataset is ``image_subset`` of the parsed training images."""
 
     config: ScalarDataManagerConfig
 
-    def create_train_dataset(self) -> InputDataset:
+    def create_train_dataset(self) -> ScalarInputDataset:
         """Training dataset of the subset (only its images are ever read)."""
         if self.config.image_subset is not None:
             self.full_train_dataparser_outputs = self.train_dataparser_outputs
             self.train_dataparser_outputs = subset_dataparser_outputs(self.train_dataparser_outputs, self.config.image_subset)
-        return super().create_train_dataset()
+        return self._with_background(super().create_train_dataset())
+
+    def create_eval_dataset(self) -> ScalarInputDataset:
+        return self._with_background(super().create_eval_dataset())
+
+    def _with_background(self, dataset: ScalarInputDataset) -> ScalarInputDataset:
+        background = getattr(self.config, "alpha_background", ScalarInputDataset.alpha_background)
+        dataset.alpha_background = tuple(float(c) for c in background)  # type: ignore[assignment]
+        return dataset

@@ -2,50 +2,35 @@
 
 from __future__ import annotations
 
-import os
-import re
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Dict, Literal, Optional, Type
+from typing import Any, Callable, Dict, Literal, Optional, Type
 
-import torch
-import yaml
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 from nerfstudio.engine.optimizers import Optimizers
 from nerfstudio.engine.trainer import Trainer, TrainerConfig
 from nerfstudio.utils import writer
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from scalar_nerfstudio.blocks.split import BlockSplitError, format_split_table, load_blocks_json, save_blocks_json
-from scalar_nerfstudio.data.validation import SceneError, check_scene
+from scalar_nerfstudio.blocks.plan import load_plan, save_plan
+from scalar_nerfstudio.blocks.split import BlockSplitError, load_blocks_json
+from scalar_nerfstudio.config_checks import OptionError, check_block_plan, check_options, check_output_dir
+from scalar_nerfstudio.data.validation import SceneError, scan_scene
+from scalar_nerfstudio.engine.contract import PhasedPipeline
+from scalar_nerfstudio.engine.preview import write_preview
 from scalar_nerfstudio.engine.report import format_report, scene_model_report, write_report
 from scalar_nerfstudio.engine.schedulers import WarmupExponentialDecaySchedulerConfig
-
-CHECKPOINT_PATTERN = re.compile(r"^step-(\d{9})\.ckpt$")
-PARTIAL_SUFFIX = ".ckpt.partial"
-
-
-def atomic_torch_save(state: Dict[str, Any], path: Path) -> None:
-    """Write ``state`` to ``path`` so that ``path`` is either absent or complete, never half-written.
-
-    The bytes go to a hidden file in ``path``'s parent's parent (outside the checkpoint folder, whose
-    every file nerfstudio's loaders parse as ``step-N.ckpt``), are fsynced, then renamed into place.
-    """
-    staging = path.parent.parent / f".{path.stem}{PARTIAL_SUFFIX}"
-    with open(staging, "wb") as handle:
-        torch.save(state, handle)
-        handle.flush()
-        os.fsync(handle.fileno())
-    os.replace(staging, path)
-
-
-def latest_checkpoint_step(checkpoint_dir: Path) -> Optional[int]:
-    """Largest N among the ``step-N.ckpt`` files in ``checkpoint_dir`` (other files are ignored)."""
-    if not checkpoint_dir.is_dir():
-        return None
-    steps = [int(m.group(1)) for m in map(CHECKPOINT_PATTERN.match, os.listdir(checkpoint_dir)) if m]
-    return max(steps) if steps else None
-
+from scalar_nerfstudio.runs import (
+    RunError,
+    atomic_torch_save,
+    blocks_json_path,
+    checkpoint_name,
+    latest_checkpoint_step,
+    load_run_config,
+    report_path,
+    run_config_path,
+    save_run_config,
+)
 
 @dataclass
 class ScalarTrainerConfig(TrainerConfig):
@@ -54,12 +39,16 @@ class ScalarTrainerConfig(TrainerConfig):
     _target: Type = field(default_factory=lambda: ScalarTrainer)
     max_num_iterations: int = 0
     """Stop after this many steps in total; 0: train every phase (global steps + blocks x block steps)."""
+    steps_per_preview: int = 500
+    """Every this many steps, and at the last step, render the first eval view beside its ground truth
+    into RUN/preview.png (and RUN/previews/step-N.png) and log its PSNR; 0: never."""
 
     def set_timestamp(self) -> None:
-        """Check the scene, then resume into the run folder that ``load_dir`` belongs to (if any).
+        """Check the options and the scene, then resume into the run folder that ``load_dir`` belongs
+        to (if any), then check that the run folder can be written.
 
-        ``ns-train`` calls this before it writes anything, so a bad scene ends here with one clear
-        message and no run folder.
+        ``ns-train`` calls this before it writes anything, so a bad scene, option or output folder
+        ends here with one clear message and no run folder.
         """
         self._check_scene()
         run_dir = self._resumed_run_dir()
@@ -67,18 +56,53 @@ class ScalarTrainerConfig(TrainerConfig):
             self.output_dir = run_dir.parent.parent.parent
             self.experiment_name = run_dir.parent.parent.name
             self.timestamp = run_dir.name
+        if run_dir is not None and self.pipeline.run_plan is None:
+            self._adopt_run_plan(run_dir)
         super().set_timestamp()
+        self._check_output_dir()
 
+    # ------------------------------------------------ up-front checks (config_checks.py, data/validation.py)
     def _check_scene(self) -> None:
+        """Options, then the scene (every image decoded), then the options that depend on the scene
+        (number of blocks vs training images, the block split): each ends in one paragraph, no traceback."""
+        self._exit_on_option_error(check_options, self)
         dataparser = self.pipeline.datamanager.dataparser
         if not isinstance(dataparser, NerfstudioDataParserConfig):
             return
-        data = self.data if self.data is not None else getattr(self.pipeline.datamanager, "data", None) or dataparser.data
+        data = Path(self.data if self.data is not None else getattr(self.pipeline.datamanager, "data", None) or dataparser.data)
         try:
-            check_scene(Path(data), eval_interval=dataparser.eval_interval, eval_mode=dataparser.eval_mode,
-                        train_fraction=dataparser.train_split_fraction)
+            scene = scan_scene(data, eval_interval=dataparser.eval_interval, eval_mode=dataparser.eval_mode,
+                               train_fraction=dataparser.train_split_fraction, downscale_factor=dataparser.downscale_factor)
         except SceneError as error:
             raise SystemExit(f"{self.method_name}: bad scene: {error}") from None
+        note = scene.conversion_note(getattr(self.pipeline.datamanager, "alpha_background", (1.0, 1.0, 1.0)))
+        if note is not None:
+            CONSOLE.print(f"{self.method_name}: {note}", soft_wrap=True, markup=False, highlight=False)
+        self._exit_on_option_error(check_options, self, scene.num_train, scene.num_frames)
+        if self.load_dir is None:
+            self._exit_on_option_error(check_block_plan, self.pipeline, data)
+
+    def _exit_on_option_error(self, check: Callable[..., None], *args: Any) -> None:
+        try:
+            check(*args)
+        except OptionError as error:
+            raise SystemExit(f"{self.method_name}: bad option: {error}") from None
+
+    def _check_output_dir(self) -> None:
+        try:
+            check_output_dir(self.get_base_dir())
+        except OptionError as error:
+            raise SystemExit(f"{self.method_name}: cannot write the run: {error}") from None
+    # ------------------------------------------------------------------------------------------------
+
+    def _adopt_run_plan(self, run_dir: Path) -> None:
+        """A resumed run keeps the shape it was planned with (its blocks.json), whatever the options say."""
+        path = blocks_json_path(run_dir)
+        try:
+            load_plan(path)
+        except BlockSplitError:
+            return  # a run from before plans were saved: its shape is decided again, as it was then
+        self.pipeline.run_plan = path.resolve()
 
     def _resumed_run_dir(self) -> Optional[Path]:
         if self.load_dir is None:
@@ -95,34 +119,34 @@ class ScalarTrainer(Trainer):
 
     def setup(self, test_mode: Literal["test", "val", "inference"] = "val") -> None:
         super().setup(test_mode=test_mode)
-        pipeline = self._pipeline()
-        total = getattr(pipeline, "total_steps", None)
-        if total is not None and self.config.max_num_iterations <= 0:
-            self.config.max_num_iterations = total
+        pipeline = self.phased_pipeline
+        if self.config.max_num_iterations <= 0:
+            self.config.max_num_iterations = pipeline.total_steps
         # nerfstudio's step log (ETA, % done) was set up in Trainer.__init__, before the phases were
         # known, with max_num_iterations 0 (= every phase): give it the real total.
         writer.GLOBAL_BUFFER["max_iter"] = self.config.max_num_iterations
-        if hasattr(pipeline, "split") and test_mode == "val":
-            self._report_split(pipeline)
+        if test_mode == "val":
+            self._record_plan(pipeline)
+            CONSOLE.print(pipeline.plan_report())
+            CONSOLE.print(f"split saved to {blocks_json_path(self.base_dir)}")
 
-    def _pipeline(self):
-        return self.pipeline.module if hasattr(self.pipeline, "module") else self.pipeline
+    @property
+    def phased_pipeline(self) -> PhasedPipeline:
+        """The pipeline, checked against the trainer's contract (engine/contract.py)."""
+        pipeline = self.pipeline
+        if not isinstance(pipeline, PhasedPipeline):
+            raise TypeError(f"{type(self).__name__} trains a pipeline that trains in phases (ScalarPipeline), not {type(pipeline).__name__}")
+        return pipeline
 
-    def _report_split(self, pipeline) -> None:
-        """Save the block split as blocks.json in the run folder and print it with the phases."""
-        save_blocks_json(pipeline.split, self.base_dir / "blocks.json", pipeline.image_names)
-        CONSOLE.print(format_split_table(pipeline.split, pipeline.image_names))
-        pixels, log2_size = pipeline.layout_scale.layout_pixels, pipeline.config.model.field.log2_hashmap_size
-        if pipeline.auto_num_blocks is not None:
-            CONSOLE.print(
-                f"automatic K = {pipeline.auto_num_blocks}: the camera layout is {pixels:.0f} training pixels across at the "
-                f"viewing distance (R^2 / T = {pixels ** 2 / 2 ** log2_size:.2f} for T = 2^{log2_size})"
-                + ("; one model suffices, no block is trained" if pipeline.auto_num_blocks == 1 else "")
-            )
-        for index, capacity in pipeline.block_capacities.items():
-            CONSOLE.print(f"block {index}: table 2^{capacity.log2_hashmap_size}, finest resolution {capacity.max_resolution}")
-        phases = ", ".join(f"{p.name}: steps {p.start_step}-{p.end_step - 1}" for p in pipeline.phases if p.num_steps > 0)
-        CONSOLE.print(f"phases: {phases}; split saved to {self.base_dir / 'blocks.json'}")
+    def _record_plan(self, pipeline: PhasedPipeline) -> None:
+        """Save the run's block plan as blocks.json and name it in config.yml (once), so that every
+        later load of the run builds the model that was trained (K, split, block capacities)."""
+        path = blocks_json_path(self.base_dir)
+        if self.config.pipeline.run_plan is not None and Path(self.config.pipeline.run_plan).resolve() == path.resolve():
+            return
+        save_plan(pipeline.plan, path)
+        self.config.pipeline.run_plan = path.resolve()
+        save_run_config(self.config, self.base_dir)
 
     def setup_optimizers(self) -> Optimizers:
         """One optimiser per parameter group, from the template in ``optimizers`` that fits the group.
@@ -130,9 +154,9 @@ class ScalarTrainer(Trainer):
         A block's groups (``block{k}.encoder`` ...) use the ``encoder`` / ``appearance`` templates and
         ``block_decoder`` for a fine-tuned decoder; each schedule spans the phase its group trains in.
         """
-        pipeline = self._pipeline()
+        pipeline = self.phased_pipeline
         param_groups = pipeline.get_param_groups()
-        phases = pipeline.param_group_phases() if hasattr(pipeline, "param_group_phases") else {}
+        phases = pipeline.param_group_phases()
         config: Dict[str, Any] = {}
         for group in param_groups:
             template, phase = phases.get(group, (group, None))
@@ -147,10 +171,14 @@ class ScalarTrainer(Trainer):
         return Optimizers(config, param_groups)
 
     def train_iteration(self, step: int):
-        """One step; a checkpoint is also written at the end of every phase."""
+        """One step; a checkpoint is also written at the end of every phase, a preview every
+        ``steps_per_preview`` steps and at the last step."""
         result = super().train_iteration(step)
-        phase_at = getattr(self._pipeline(), "phase_at", None)
-        if phase_at is not None and step + 1 == phase_at(step).end_step and step + 1 < self._total_steps:
+        every = self.config.steps_per_preview
+        if every > 0 and ((step + 1) % every == 0 or step + 1 == self._total_steps):
+            path, psnr = write_preview(self.pipeline, self.base_dir, step)
+            CONSOLE.print(f"step {step + 1}: preview (render | ground truth, eval view 0, {psnr:.2f} dB) written to {path}")
+        if step + 1 == self.phased_pipeline.phase_at(step).end_step and step + 1 < self._total_steps:
             self.save_checkpoint(step)
         return result
 
@@ -182,20 +210,18 @@ class ScalarTrainer(Trainer):
 
     def _report_models(self) -> None:
         """Print and save (model_report.json) every model's parameters, table size and memory."""
-        pipeline = self._pipeline()
-        if not hasattr(pipeline.model, "global_model"):
-            return
+        pipeline = self.phased_pipeline
         report = scene_model_report(pipeline.model, self.optimizers.optimizers.values(), self.device)
-        extra = {"auto_num_blocks": getattr(pipeline, "auto_num_blocks", None)}
-        write_report(report, self.base_dir / "model_report.json", extra)
+        path = report_path(self.base_dir)
+        write_report(report, path, {"auto_num_blocks": pipeline.plan.auto_num_blocks})
         CONSOLE.print(format_report(report))
-        CONSOLE.print(f"model report saved to {self.base_dir / 'model_report.json'}")
+        CONSOLE.print(f"model report saved to {path}")
 
     def save_checkpoint(self, step: int) -> None:
         """Save model, optimizers, schedulers and scaler atomically; keep only the latest if configured."""
         self.checkpoint_dir.mkdir(parents=True, exist_ok=True)
-        ckpt_path = self.checkpoint_dir / f"step-{step:09d}.ckpt"
-        pipeline = self._pipeline()
+        ckpt_path = self.checkpoint_dir / checkpoint_name(step)
+        pipeline = self.pipeline
         state = {
             "step": step,
             "pipeline": pipeline.state_dict(),
@@ -208,12 +234,6 @@ class ScalarTrainer(Trainer):
             for old in self.checkpoint_dir.glob("step-*.ckpt"):
                 if old != ckpt_path:
                     old.unlink()
-
-
-def run_config_path(run: Path) -> Path:
-    """``config.yml`` of a run given as the file itself or its folder."""
-    path = Path(run)
-    return path if path.suffix in (".yml", ".yaml") else path / "config.yml"
 
 
 @dataclass
@@ -246,14 +266,15 @@ class ScalarBlockTrainerConfig(ScalarTrainerConfig):
         if self.global_run is None:
             raise SystemExit("scalar-nerf-block: --global-run is required (the folder of a trained `ns-train scalar-nerf` run).")
         config_path = run_config_path(self.global_run)
-        if not config_path.is_file():
-            raise SystemExit(f"scalar-nerf-block: --global-run {self.global_run}: no config.yml there.")
+        try:
+            global_config = load_run_config(config_path)
+        except RunError:
+            raise SystemExit(f"scalar-nerf-block: --global-run {self.global_run}: no config.yml there.") from None
         run_dir = config_path.parent
-        global_config = yaml.load(config_path.read_text(), Loader=yaml.Loader)
         global_pipeline = getattr(global_config, "pipeline", None)
         if not hasattr(global_pipeline, "global_steps"):
             raise SystemExit(f"scalar-nerf-block: {config_path} is not a scalar-nerf run.")
-        blocks_json = run_dir / "blocks.json"
+        blocks_json = blocks_json_path(run_dir)
         if not blocks_json.is_file():
             raise SystemExit(f"scalar-nerf-block: {blocks_json} is missing; was {run_dir} trained with scalar-nerf?")
         checkpoint_dir = run_dir / global_config.relative_model_dir
@@ -290,7 +311,7 @@ class ScalarBlockTrainerConfig(ScalarTrainerConfig):
             pipeline.datamanager.train_num_rays_per_batch = global_pipeline.datamanager.train_num_rays_per_batch
         pipeline.only_block = self.block
         pipeline.blocks_json = blocks_json.resolve()
-        pipeline.global_checkpoint = (checkpoint_dir / f"step-{step:09d}.ckpt").resolve()
+        pipeline.global_checkpoint = (checkpoint_dir / checkpoint_name(step)).resolve()
         self.data = global_pipeline.datamanager.data
         if self.experiment_name is None:
             self.experiment_name = global_config.experiment_name

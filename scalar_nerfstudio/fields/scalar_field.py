@@ -16,6 +16,7 @@ from nerfstudio.field_components.encodings import SHEncoding
 from torch import Tensor, nn
 
 from scalar_nerfstudio.encodings import HashGridEncoding
+from scalar_nerfstudio.encodings.hash_grid import level_corners, sanitise_positions
 
 # Values beyond this magnitude are clamped before contraction: far enough to contract to the
 # boundary (2 - 1e-30 == 2 in float32) and small enough that squaring cannot overflow float32.
@@ -42,6 +43,37 @@ def contract(positions: Tensor) -> Tensor:
 def contract_to_unit_cube(positions: Tensor) -> Tensor:
     """[N, 3] world positions -> [N, 3] in [0, 1]^3 (contracted ball of radius 2 mapped to the cube)."""
     return (contract(positions) / 4.0 + 0.5).clamp(0.0, 1.0)
+
+
+def encode_with_position_gradients(encoder: HashGridEncoding, positions: Tensor) -> Tensor:
+    """The hash-grid encoding of ``encoder``, differentiable with respect to the positions.
+
+    The training kernels give the table gradients and the positions none (training never needs
+    d(features)/d(position)). Surface normals do: this pure-torch version (any device) computes the
+    same trilinear interpolation with autograd on the interpolation weights, reading a detached
+    table (no table gradients). It is slower than the C++ kernel and used only for normals.
+
+    Args:
+        encoder: the hash grid (its table and layout are read).
+        positions: [N, 3] contracted unit-cube positions (NaN -> 0 and clamped to [0, 1] like the
+            kernels; clamped coordinates get zero gradient).
+
+    Returns:
+        [N, L * F] float32 features, equal to ``encoder(positions)`` up to float32 summation order.
+    """
+    if positions.ndim != 2 or positions.shape[-1] != 3:
+        raise ValueError(f"positions must have shape [N, 3], got {tuple(positions.shape)}")
+    table = encoder.table.detach()
+    layout = encoder.layout
+    num_features = table.shape[1]
+    coords = sanitise_positions(positions.to(torch.float32)).t()  # [3, N]
+    levels = []
+    for level, resolution in enumerate(layout.resolutions):
+        start, stop = layout.level_offsets[level], layout.level_offsets[level + 1]
+        rows, weights = level_corners(coords, resolution, layout.hashmap_size)  # [8, N] each
+        corner_features = table[start:stop].index_select(0, rows.reshape(-1)).view(8, -1, num_features)
+        levels.append((corner_features * weights.unsqueeze(-1)).sum(0))  # [N, F]
+    return torch.cat(levels, dim=-1)
 
 
 class Decoder(nn.Module):
@@ -167,7 +199,17 @@ class ScalarField(nn.Module):
         return torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.cpu_bfloat16 and like.device.type == "cpu")
 
     def density_at_unit(self, unit_positions: Tensor) -> tuple[Tensor, Tensor]:
-        """[N, 3] contracted unit-cube positions -> ([N] float32 density, [N, geo_feat_dim] features)."""
+        """[N, 3] contracted unit-cube positions -> ([N] float32 density, [N, geo_feat_dim] features).
+
+        When ``unit_positions`` requires grad (and grad mode is on), the density is differentiable
+        with respect to the positions (for surface normals): the encoding then runs through
+        :func:`encode_with_position_gradients` and the decoder in float32 (no autocast). Otherwise
+        the fast kernels (positions get no gradient) and the configured decoder precision are used.
+        """
+        if unit_positions.requires_grad and torch.is_grad_enabled():
+            features = encode_with_position_gradients(self.encoder, unit_positions)
+            with torch.autocast(device_type=features.device.type, enabled=False):
+                return self.decoder.density(features)
         features = self.encoder(unit_positions)
         with self._decoder_autocast(features):
             return self.decoder.density(features)

@@ -96,3 +96,50 @@ def distortion_loss(weights: Tensor, s_starts: Tensor, s_ends: Tensor) -> Tensor
     bilateral = 2.0 * torch.sum(weights * (mids * weights_before - weighted_mids_before), dim=-1)
     unilateral = torch.sum(weights**2 * widths, dim=-1) / 3.0
     return bilateral + unilateral
+
+
+def safe_normalise(vectors: Tensor, fallback: Tensor, eps: float = 1e-12) -> Tensor:
+    """Unit vectors, finite for any input.
+
+    Args:
+        vectors: [..., 3] (any values; NaN/inf count as unusable).
+        fallback: [..., 3] unit vectors (broadcastable) used where ``vectors`` is shorter than
+            ``eps`` or not finite.
+
+    Returns:
+        [..., 3] unit vectors.
+    """
+    finite = torch.isfinite(vectors).all(dim=-1, keepdim=True)
+    vectors = torch.where(finite, vectors, torch.zeros_like(vectors))
+    # Scale by the largest component first: squaring tiny (1e-30) or huge (1e30) components stays finite.
+    scale = vectors.abs().amax(dim=-1, keepdim=True)
+    scaled = vectors / scale.clamp_min(1e-30)
+    norm = torch.linalg.vector_norm(scaled, dim=-1, keepdim=True)
+    usable = finite & (scale > eps)
+    return torch.where(usable, scaled / norm.clamp_min(1e-30), fallback.to(vectors.dtype).expand_as(vectors))
+
+
+def render_normals(weights: Tensor, normals: Tensor, fallback: Tensor) -> Tensor:
+    """Expected surface normal of each ray: the normalised weighted sum of its samples' normals.
+
+    Args:
+        weights: [R, S] rendering weights.
+        normals: [R, S, 3] unit (or zero: no normal) normals of the samples.
+        fallback: [R, 3] unit vectors for rays whose weighted sum vanishes (nothing hit, zero
+            density gradients), e.g. the reversed ray direction (facing the camera).
+
+    Returns:
+        [R, 3] unit normals, always finite.
+    """
+    return safe_normalise(composite(weights, normals), fallback)
+
+
+def normals_to_unit_interval(normals: Tensor) -> Tensor:
+    """[..., 3] unit normals in [-1, 1] -> [..., 3] in [0, 1] (``(n + 1) / 2``, nerfstudio's convention
+    for a ``normals`` output: ``ns-export`` maps it back with ``2 x - 1``; the viewer shows it as colour)."""
+    return ((normals + 1.0) / 2.0).clamp(0.0, 1.0)
+
+
+def normals_from_unit_interval(encoded: Tensor) -> Tensor:
+    """Inverse of :func:`normals_to_unit_interval`: [..., 3] in [0, 1] -> [..., 3] in [-1, 1]."""
+    return encoded * 2.0 - 1.0

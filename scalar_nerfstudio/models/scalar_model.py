@@ -9,13 +9,17 @@ Rendering path (per ray batch, flat tensors, no nerfstudio RaySamples on the hot
    samples more transparent than ``alpha_threshold`` once the grid has warmed up.
 4. The field (density and colour, with gradients) runs only on the surviving samples, which are
    scattered back into a dense ``[R, S]`` layout for volume rendering.
+5. Only when normals are wanted (see :class:`NormalsOutput`): the density's gradient with respect
+   to the world position, by autograd on the samples that carry weight, gives each sample's normal
+   ``-grad / |grad|``; their weighted sum, normalised, is the ray's ``normals`` output.
 """
 
 from __future__ import annotations
 
 import warnings
+from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Dict, List, Literal, Optional, Tuple, Type
+from typing import Dict, Iterator, List, Literal, Optional, Tuple, Type, get_args
 
 import torch
 from nerfstudio.cameras.rays import RayBundle
@@ -30,13 +34,25 @@ from scalar_nerfstudio.model_components.rendering import (
     alphas_from_densities,
     composite,
     distortion_loss,
+    normals_to_unit_interval,
     render_depth,
+    render_normals,
     render_weights,
+    safe_normalise,
     weights_from_alphas,
 )
 from scalar_nerfstudio.model_components.sampling import OccupancyGrid, lin_disp_spacing, sample_intervals
 
 _CHUNK = 1 << 16
+#: Points per autograd pass of the normals (their graph holds ~1.5 kB per point at 16 levels x 4 features).
+_NORMALS_CHUNK = 1 << 15
+#: Samples lighter than this rendering weight get no normal (they add < 1e-4 each to the ray's sum).
+NORMALS_MIN_WEIGHT = 1e-4
+#: Background colour outside training (evaluation, rendering, the viewer, exports).
+EVAL_BACKGROUND = 0.5
+
+RenderNormals = Literal["rays", "always", "never"]
+RENDER_NORMALS: Tuple[str, ...] = get_args(RenderNormals)
 
 
 def _neutralise_bad_rays(origins: Tensor, directions: Tensor, nears: Tensor, fars: Tensor) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -99,9 +115,93 @@ class ScalarModelConfig(ModelConfig):
     """Weight of Mip-NeRF 360's distortion loss (0 disables it)."""
     background_color: Literal["random", "grey"] = "random"
     """Training background (random teaches opaque geometry); evaluation always uses grey."""
+    render_normals: RenderNormals = "rays"
+    """When the ``normals`` output (density-gradient normals, in [0, 1] as (n + 1) / 2) is computed,
+    never in training: "rays" (default) for ray batches rendered outside training (what
+    ``ns-export pointcloud`` / ``poisson`` render) but not for camera images (eval, ns-render, the
+    viewer), which then cost nothing extra; "always" also for camera images (the viewer lists
+    ``normals``); "never"."""
 
 
-class ScalarModel(Model):
+def check_render_normals(mode: str) -> RenderNormals:
+    """``mode`` if it is one of :data:`RENDER_NORMALS`, else a ValueError naming them."""
+    if mode not in RENDER_NORMALS:
+        raise ValueError(f"render_normals {mode!r}: expected one of {', '.join(RENDER_NORMALS)}")
+    return mode  # type: ignore[return-value]
+
+
+class NormalsOutput:
+    """When a nerfstudio :class:`Model` adds the ``normals`` output; its RGBA image (mixin).
+
+    ``render_normals`` (initialised from the config, settable at run time, or for a block of code
+    with :meth:`rendering_normals`) is "rays", "always" or "never" (see
+    :attr:`ScalarModelConfig.render_normals`). Camera images are told apart from ray batches by
+    :meth:`get_outputs_for_camera_ray_bundle`, through which every camera render of nerfstudio
+    (eval, ns-render, the viewer, the TSDF export) passes.
+    """
+
+    training: bool
+    _render_normals: RenderNormals
+    _camera_renders: int
+
+    def _init_normals_output(self, mode: str) -> None:
+        self._render_normals = check_render_normals(mode)
+        self._camera_renders = 0
+
+    @property
+    def render_normals(self) -> RenderNormals:
+        """"rays", "always" or "never": when rendering outside training adds ``normals``."""
+        return self._render_normals
+
+    @render_normals.setter
+    def render_normals(self, mode: RenderNormals) -> None:
+        self._render_normals = check_render_normals(mode)
+
+    @contextmanager
+    def rendering_normals(self, mode: RenderNormals = "always") -> Iterator[None]:
+        """Use ``mode`` for :attr:`render_normals` inside the ``with`` block."""
+        previous = self._render_normals
+        self.render_normals = mode
+        try:
+            yield
+        finally:
+            self._render_normals = previous
+
+    def normals_wanted(self) -> bool:
+        """Whether the render running now adds ``normals`` (never in training)."""
+        if self.training or self._render_normals == "never":
+            return False
+        return self._render_normals == "always" or self._camera_renders == 0
+
+    @torch.no_grad()
+    def get_outputs_for_camera_ray_bundle(self, camera_ray_bundle: RayBundle) -> Dict[str, Tensor]:
+        """nerfstudio's chunked camera render, marked as a camera image (see :meth:`normals_wanted`)."""
+        self._camera_renders += 1
+        try:
+            return super().get_outputs_for_camera_ray_bundle(camera_ray_bundle)  # type: ignore[misc]
+        finally:
+            self._camera_renders -= 1
+
+    def get_rgba_image(self, outputs: Dict[str, Tensor], output_name: str = "rgb") -> Tensor:
+        """[..., 4]: the colour without the background and the accumulation as alpha.
+
+        Outside training the background is :data:`EVAL_BACKGROUND` grey, so ``rgb = c + (1 - a) grey``
+        and the foreground colour is ``c / a``. nerfstudio's exporters keep the points / pixels of
+        alpha > 0.5 (``ns-export pointcloud``) and texture meshes with this colour.
+        """
+        accumulation_name = output_name.replace("rgb", "accumulation")
+        if output_name not in outputs or accumulation_name not in outputs:
+            raise KeyError(f"get_rgba_image needs outputs {output_name!r} and {accumulation_name!r}; got {sorted(outputs)}")
+        rgb = outputs[output_name]
+        accumulation = outputs[accumulation_name]
+        if accumulation.dim() < rgb.dim():
+            accumulation = accumulation.unsqueeze(-1)
+        foreground = (rgb - (1.0 - accumulation) * EVAL_BACKGROUND) / accumulation.clamp_min(1e-6)
+        foreground = torch.where(accumulation > 1e-6, foreground, torch.full_like(foreground, EVAL_BACKGROUND))
+        return torch.cat((torch.nan_to_num(foreground, nan=EVAL_BACKGROUND).clamp(0.0, 1.0), accumulation.clamp(0.0, 1.0)), dim=-1)
+
+
+class ScalarModel(NormalsOutput, Model):
     """Hash-grid NeRF with an occupancy grid, a shared-decoder field and per-image appearance.
 
     Keyword args (besides nerfstudio's ``scene_box`` / ``num_train_data``):
@@ -119,6 +219,7 @@ class ScalarModel(Model):
         self.config.collider_params = {"near_plane": self.config.near_plane, "far_plane": self.config.far_plane}
         super().populate_modules()
         self.collider = near_far_collider(self.config)
+        self._init_normals_output(self.config.render_normals)
         centre = torch.as_tensor(self.kwargs.get("region_centre", (0.0, 0.0, 0.0)), dtype=torch.float32).reshape(3)
         radius = float(self.kwargs.get("region_radius", 1.0))
         if not (torch.isfinite(centre).all() and radius > 0 and radius < float("inf")):
@@ -156,8 +257,18 @@ class ScalarModel(Model):
         ) if unit_positions.shape[0] > 0 else unit_positions.new_zeros(0)
 
     # ---------------------------------------------------------------------------------- rendering
-    def get_outputs(self, ray_bundle: RayBundle) -> Dict[str, Tensor]:
-        """Render ``rgb`` [R, 3], ``depth`` [R, 1], ``accumulation`` [R, 1] for a batch of rays."""
+    def render_rays(self, ray_bundle: RayBundle, normals: Optional[bool] = None) -> Dict[str, Tensor]:
+        """``forward`` (collider, then :meth:`get_outputs`) with an explicit choice of normals."""
+        if self.collider is not None:
+            ray_bundle = self.collider(ray_bundle)
+        return self.get_outputs(ray_bundle, normals=normals)
+
+    def get_outputs(self, ray_bundle: RayBundle, normals: Optional[bool] = None) -> Dict[str, Tensor]:
+        """Render ``rgb`` [R, 3], ``depth`` [R, 1], ``accumulation`` [R, 1] for a batch of rays.
+
+        Also ``normals`` [R, 3] in [0, 1] (``(n + 1) / 2`` of the unit world-frame normal) when
+        ``normals`` is True, or when it is None and :meth:`normals_wanted`.
+        """
         origins = ray_bundle.origins.reshape(-1, 3)
         directions = ray_bundle.directions.reshape(-1, 3)
         num_rays = origins.shape[0]
@@ -196,7 +307,48 @@ class ScalarModel(Model):
             outputs["distortion"] = distortion_loss(weights, lin_disp_spacing(t_starts), lin_disp_spacing(t_ends))
         samples_per_ray = torch.bincount(ray_ids, minlength=num_rays).to(rgb.dtype)[:, None]
         outputs["samples_per_ray"] = samples_per_ray
+        if self.normals_wanted() if normals is None else normals:
+            outputs["normals"] = normals_to_unit_interval(self._ray_normals(positions, sample_ids, weights.detach(), directions))
         return outputs
+
+    def _ray_normals(self, positions: Tensor, sample_ids: Tensor, weights: Tensor, directions: Tensor) -> Tensor:
+        """Expected unit normal per ray, [R, 3] in [-1, 1].
+
+        Args:
+            positions: [R, S, 3] world positions of the samples.
+            sample_ids: [M] flat indices of the evaluated samples.
+            weights: [R, S] rendering weights.
+            directions: [R, 3] ray directions; a ray without a normal (nothing hit, or zero density
+                gradient everywhere) gets the reversed, normalised direction (it faces the camera).
+        """
+        num_rays, num_samples = weights.shape
+        heavy = sample_ids[weights.reshape(-1)[sample_ids] > NORMALS_MIN_WEIGHT]
+        sample_normals = positions.new_zeros(num_rays * num_samples, 3)
+        sample_normals[heavy] = self.density_normals(positions.reshape(-1, 3)[heavy])
+        facing = safe_normalise(-directions, torch.tensor([0.0, 0.0, 1.0], dtype=directions.dtype, device=directions.device))
+        return render_normals(weights, sample_normals.reshape(num_rays, num_samples, 3), facing)
+
+    def density_normals(self, positions: Tensor) -> Tensor:
+        """Normals of the density field: ``-grad sigma / |grad sigma|`` at [N, 3] world positions -> [N, 3].
+
+        The gradient is taken by autograd through the region transform, the contraction, the
+        hash grid and the density head, in chunks, also when called under ``no_grad`` or
+        ``inference_mode``. Where the gradient vanishes (or is not finite) the normal is 0.
+        """
+        if positions.shape[0] == 0:
+            return positions.new_zeros(0, 3)
+        chunks = []
+        with torch.inference_mode(False), torch.enable_grad():
+            for chunk in torch.split(positions, _NORMALS_CHUNK):
+                points = chunk.detach().clone().float().requires_grad_(True)
+                density, _ = self.field.density_at_unit(contract_to_unit_cube(self._to_region(points)))
+                if not density.requires_grad:  # a density that does not depend on position
+                    chunks.append(torch.zeros_like(points).detach())
+                    continue
+                (gradient,) = torch.autograd.grad(density.float().sum(), points, allow_unused=True)
+                gradient = torch.zeros_like(points) if gradient is None else gradient
+                chunks.append(safe_normalise(-gradient.detach(), torch.zeros(3, dtype=points.dtype, device=points.device)))
+        return torch.cat(chunks).to(positions.dtype)
 
     def _to_region(self, positions: Tensor) -> Tensor:
         """[N, 3] world positions -> [N, 3] in the model's region frame (centre 0, radius 1)."""
@@ -225,7 +377,7 @@ class ScalarModel(Model):
         """[R, 3] background colour: random while training (if configured), grey otherwise."""
         if self.training and self.config.background_color == "random":
             return torch.rand(num_rays, 3, dtype=like.dtype, device=like.device)
-        return like.new_full((num_rays, 3), 0.5)
+        return like.new_full((num_rays, 3), EVAL_BACKGROUND)
 
     # ------------------------------------------------------------------------------ loss, metrics
     @staticmethod
@@ -258,4 +410,6 @@ class ScalarModel(Model):
         target = self._target_rgb(batch, predicted)
         metrics = self.image_metrics(predicted, target)
         images = {"img": torch.cat([target, predicted], dim=1), "depth": outputs["depth"], "accumulation": outputs["accumulation"]}
+        if "normals" in outputs:
+            images["normals"] = outputs["normals"]
         return metrics, images

@@ -9,7 +9,7 @@ global model and the blocks that have started training, and fuses them per pixel
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Dict, List, Literal, Optional, Sequence, Tuple, Type
+from typing import Dict, List, Literal, Optional, Tuple, Type
 
 import torch
 from nerfstudio.cameras.cameras import Cameras
@@ -21,9 +21,18 @@ from torch.nn import Parameter
 from scalar_nerfstudio.blocks.capacity import BlockCapacity
 from scalar_nerfstudio.blocks.split import Block, BlockSplit
 from scalar_nerfstudio.blocks.visibility import aabb_in_frustum
-from scalar_nerfstudio.fusion import ParsedFusionMode, fuse_outputs, nearest_block, parse_fusion_mode
+from scalar_nerfstudio.fusion import (
+    ParsedFusionMode,
+    fuse_outputs,
+    fuse_weighted,
+    idw_weights,
+    nearest_block,
+    parse_fusion_mode,
+    select_winner,
+)
 from scalar_nerfstudio.metrics import psnr
-from scalar_nerfstudio.models.scalar_model import ScalarModel, ScalarModelConfig, near_far_collider
+from scalar_nerfstudio.model_components.rendering import normals_from_unit_interval, normals_to_unit_interval, safe_normalise
+from scalar_nerfstudio.models.scalar_model import NormalsOutput, ScalarModel, ScalarModelConfig, near_far_collider
 from scalar_nerfstudio.viewer import BLOCK_PALETTE, GLOBAL_COLOUR
 
 DecoderMode = Literal["finetune", "frozen", "independent"]
@@ -56,8 +65,13 @@ def block_region(block: Block) -> Tuple[Tuple[float, float, float], float]:
     return block.centre, max(half_extent, MIN_REGION_RADIUS)
 
 
-class ScalarSceneModel(Model):
+class ScalarSceneModel(NormalsOutput, Model):
     """Global model, block models and their fusion.
+
+    Rendering outside training adds a fused ``normals`` output (see
+    :attr:`ScalarModelConfig.render_normals`): each pixel's normal comes from the model that gave its
+    colour (the same winner, or the same IDW weights), so ``ns-export pointcloud`` writes one merged
+    cloud of what the fused render shows.
 
     Keyword args (from the pipeline):
         split: the :class:`BlockSplit` of the training images (indices into them).
@@ -76,6 +90,7 @@ class ScalarSceneModel(Model):
         self.config.collider_params = {"near_plane": self.config.near_plane, "far_plane": self.config.far_plane}
         super().populate_modules()
         self.collider = near_far_collider(self.config)
+        self._init_normals_output(self.config.render_normals)
         self.split: BlockSplit = self.kwargs["split"]
         self.block_ids: Tuple[int, ...] = tuple(self.kwargs.get("block_ids", range(self.split.num_blocks)))
         self.decoder_mode: DecoderMode = self.kwargs.get("decoder_mode", "finetune")
@@ -170,11 +185,12 @@ class ScalarSceneModel(Model):
 
     def get_outputs(self, ray_bundle: RayBundle) -> Dict[str, Tensor]:
         """Fused ``rgb`` [R, 3], ``depth`` [R, 1], ``accumulation`` [R, 1], ``block_winner`` [R, 1],
-        ``block_colour`` [R, 3].
+        ``block_colour`` [R, 3]; ``normals`` [R, 3] in [0, 1] when :meth:`normals_wanted`.
 
         ``block_winner`` is the index of the block that gave the pixel (-1: the global model);
         ``block_colour`` shows it in the block's viewer colour.
         """
+        normals = self.normals_wanted()
         mode = self.fusion_mode
         block_ids = self._blocks_for(mode)
         if mode.kind == "nearest" and len(block_ids) > 1:  # render only the blocks some ray is nearest to
@@ -182,12 +198,16 @@ class ScalarSceneModel(Model):
             nearest = nearest_block(ray_bundle.origins.reshape(-1, 3), centres).reshape(-1)
             block_ids = [block_ids[i] for i in sorted(set(nearest.tolist()))]
         # The global model is rendered only where the fusion needs it (idw / nearest / block do not).
-        global_outputs = self.global_model(ray_bundle) if mode.kind in ("global", "global-only") or not block_ids else None
+        # Its normals only where it is the output (with blocks, "global" takes every pixel from a block).
+        global_outputs = (
+            self.global_model.render_rays(ray_bundle, normals=normals and not block_ids)
+            if mode.kind in ("global", "global-only") or not block_ids else None
+        )
         self.rendered_models.update([*block_ids, *(["global"] if global_outputs is not None else [])])
         if not block_ids:
             winner = torch.full_like(global_outputs["accumulation"], -1.0)
             return {**global_outputs, "block_winner": winner, "block_colour": self._winner_colours(winner)}
-        block_outputs = [self.blocks[str(b)](ray_bundle) for b in block_ids]
+        block_outputs = [self.blocks[str(b)].render_rays(ray_bundle, normals=normals) for b in block_ids]
         if mode.kind == "block":
             mode = ParsedFusionMode(kind="block", block_index=0)
         fused = fuse_outputs(
@@ -196,10 +216,46 @@ class ScalarSceneModel(Model):
             block_centres=self.block_centres[block_ids].to(ray_bundle.origins.device),
             gamma=self.config.idw_gamma,
         )
+        if normals:
+            fused["normals"] = self._fuse_normals(
+                mode, block_outputs, global_outputs, fused["block_winner"].reshape(-1), ray_bundle,
+                self.block_centres[block_ids].to(ray_bundle.origins.device),
+            )
         position_to_id = torch.tensor([-1, *block_ids], dtype=torch.float32, device=fused["rgb"].device)
         fused["block_winner"] = position_to_id[fused["block_winner"].reshape(-1) + 1][:, None]
         fused["block_colour"] = self._winner_colours(fused["block_winner"])
         return fused
+
+    def _fuse_normals(
+        self,
+        mode: ParsedFusionMode,
+        block_outputs: List[Dict[str, Tensor]],
+        global_outputs: Optional[Dict[str, Tensor]],
+        winner: Tensor,
+        ray_bundle: RayBundle,
+        block_centres: Tensor,
+    ) -> Tensor:
+        """[R, 3] fused normals in [0, 1], following the colour's fusion.
+
+        Args:
+            mode: the fusion mode the colours were fused with ("block" already renumbered to 0).
+            block_outputs: K block renders with ``normals`` [R, 3] in [0, 1].
+            global_outputs: the global render (its ``normals`` are the fallback if present).
+            winner: [R] position of each ray's winning block in ``block_outputs`` (-1: none).
+            ray_bundle: the rendered rays (origins for IDW, directions for the fallback).
+            block_centres: [K, 3] centres of the rendered blocks.
+
+        A ray no model gives a normal (winner -1 without global normals) faces its camera.
+        """
+        directions = ray_bundle.directions.reshape(-1, 3)
+        facing = safe_normalise(-directions, torch.tensor([0.0, 0.0, 1.0], dtype=directions.dtype, device=directions.device))
+        fallback = global_outputs["normals"] if global_outputs is not None and "normals" in global_outputs else normals_to_unit_interval(facing)
+        stacked = torch.stack([outputs["normals"] for outputs in block_outputs])  # [K, R, 3]
+        if mode.kind != "idw":
+            return select_winner(stacked, winner, fallback=fallback)
+        weights = idw_weights(ray_bundle.origins.reshape(-1, 3), block_centres, self.config.idw_gamma)  # [K, R]
+        mixed = fuse_weighted(normals_from_unit_interval(stacked), weights, fallback=normals_from_unit_interval(fallback))
+        return normals_to_unit_interval(safe_normalise(mixed, normals_from_unit_interval(fallback)))
 
     def _winner_colours(self, winner: Tensor) -> Tensor:
         """[R, 1] block indices (-1: global) -> [R, 3] viewer colours."""
@@ -235,16 +291,8 @@ class ScalarSceneModel(Model):
         self, outputs: Dict[str, Tensor], batch: Dict[str, Tensor]
     ) -> Tuple[Dict[str, float], Dict[str, Tensor]]:
         """PSNR, SSIM (LPIPS when available) of the fused image; images incl. the block winner map."""
-        metrics, images = self.global_model.get_image_metrics_and_images(outputs, batch)
+        metrics, images = self.global_model.get_image_metrics_and_images(outputs, batch)  # (normals too, if rendered)
         if "block_winner" in outputs:
             images["block_winner"] = outputs["block_winner"]
         return metrics, images
 
-
-def held_blocks(split: BlockSplit, only_block: Optional[int]) -> Sequence[int]:
-    """Blocks a pipeline's model holds: all of ``split``'s, or just ``only_block``."""
-    if only_block is None:
-        return tuple(range(split.num_blocks))
-    if not 0 <= only_block < split.num_blocks:
-        raise ValueError(f"block {only_block} does not exist: the split has blocks 0..{split.num_blocks - 1}")
-    return (only_block,)

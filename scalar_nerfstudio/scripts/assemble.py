@@ -18,10 +18,20 @@ from typing import Dict, List, Optional, Tuple
 
 import torch
 import tyro
-import yaml
 
+from scalar_nerfstudio.atomic_io import atomic_write_text
 from scalar_nerfstudio.blocks.split import BlockSplitError, load_blocks_json
-from scalar_nerfstudio.engine.trainer import atomic_torch_save, latest_checkpoint_step, run_config_path
+from scalar_nerfstudio.runs import (
+    BLOCKS_JSON_NAME,
+    RunError,
+    atomic_torch_save,
+    blocks_json_path,
+    checkpoint_name,
+    latest_checkpoint,
+    load_run_config,
+    run_config_path,
+    save_run_config,
+)
 
 MODEL_PREFIX = "_model."
 
@@ -33,20 +43,17 @@ class AssembleError(RuntimeError):
 def load_run(run: Path) -> Tuple[Path, object, Path]:
     """(run folder, its config, its newest checkpoint) for a run folder or its config.yml."""
     config_path = run_config_path(run)
-    if not config_path.is_file():
-        raise AssembleError(f"{run}: no config.yml (not a nerfstudio run folder)")
-    config = yaml.load(config_path.read_text(), Loader=yaml.Loader)
-    checkpoint_dir = config_path.parent / config.relative_model_dir
-    step = latest_checkpoint_step(checkpoint_dir)
-    if step is None:
-        raise AssembleError(f"{config_path.parent}: no checkpoint in {checkpoint_dir}")
-    return config_path.parent, config, checkpoint_dir / f"step-{step:09d}.ckpt"
+    try:
+        config = load_run_config(config_path)
+        return config_path.parent, config, latest_checkpoint(config_path.parent, config)
+    except RunError as error:
+        raise AssembleError(str(error)) from None
 
 
 def _split_of(run_dir: Path) -> Tuple[List[str], List[Tuple[int, ...]]]:
     """(training image names, each block's image indices) of a run's blocks.json."""
     try:
-        split, names = load_blocks_json(run_dir / "blocks.json")
+        split, names = load_blocks_json(blocks_json_path(run_dir))
     except BlockSplitError as error:
         raise AssembleError(f"{run_dir}: {error}") from None
     return names, [block.image_indices for block in split.blocks]
@@ -105,13 +112,16 @@ def assemble(global_run: Path, block_runs: List[Path], output_dir: Optional[Path
     global_config.load_dir = None
     model_dir = run_dir / global_config.relative_model_dir
     model_dir.mkdir(parents=True)
-    for name in ("blocks.json", "dataparser_transforms.json"):
+    for name in (BLOCKS_JSON_NAME, "dataparser_transforms.json"):
         if (global_dir / name).is_file():
             shutil.copy2(global_dir / name, run_dir / name)
-    atomic_torch_save({"step": state["step"], "pipeline": merged}, model_dir / f"step-{state['step']:09d}.ckpt")
-    (run_dir / "config.yml").write_text(yaml.dump(global_config), "utf8")
-    (run_dir / "assembled_from.json").write_text(
-        json.dumps({"global_run": str(global_dir), "blocks": {str(k): str(v) for k, v in sorted(sources.items())}}, indent=2)
+    if getattr(global_config.pipeline, "run_plan", None) is not None:
+        global_config.pipeline.run_plan = blocks_json_path(run_dir).resolve()  # the copy: the new run is self-contained
+    atomic_torch_save({"step": state["step"], "pipeline": merged}, model_dir / checkpoint_name(state["step"]))
+    save_run_config(global_config, run_dir)
+    atomic_write_text(
+        run_dir / "assembled_from.json",
+        json.dumps({"global_run": str(global_dir), "blocks": {str(k): str(v) for k, v in sorted(sources.items())}}, indent=2),
     )
     return run_dir
 

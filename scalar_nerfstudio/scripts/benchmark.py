@@ -114,14 +114,14 @@ def auto_k(config: BenchmarkConfig, log2_t: int) -> int:
     """The automatic K scalar-nerf would choose on this scene (same rule as the pipeline)."""
     from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 
-    from scalar_nerfstudio.pipeline import ScalarPipelineConfig, _layout_scale
+    from scalar_nerfstudio.pipeline import ScalarPipelineConfig, parsed_layout_scale
 
     parsed = NerfstudioDataParserConfig(
         data=config.data, downscale_factor=config.downscale, eval_mode="interval", eval_interval=8
     ).setup().get_dataparser_outputs("train")
     pipeline = ScalarPipelineConfig()
     pipeline.model.field.log2_hashmap_size = log2_t
-    return pipeline.automatic_num_blocks(_layout_scale(parsed), len(parsed.image_filenames))
+    return pipeline.automatic_num_blocks(parsed_layout_scale(parsed), len(parsed.image_filenames))
 
 
 def plan(config: BenchmarkConfig) -> Tuple[List[Variant], Dict[str, str]]:

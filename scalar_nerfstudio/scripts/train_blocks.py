@@ -35,6 +35,7 @@ from typing import Annotated, Dict, List, Literal, Optional, Tuple
 import tyro
 
 from scalar_nerfstudio.atomic_io import atomic_write_text
+from scalar_nerfstudio.runs import latest_checkpoint_step, load_run_config
 
 PROG = "scalar-nerf-train-blocks"
 DONE_MARKER = "DONE.json"
@@ -328,14 +329,6 @@ class RayExecutor:
 # ------------------------------------------------------------------- folders and results
 
 
-def latest_step(checkpoint_dir: Path) -> Optional[int]:
-    """The trainer's newest ``step-N.ckpt`` rule (imported here: it brings torch, which the command's
-    own process has loaded anyway and a Ray worker never calls this)."""
-    from scalar_nerfstudio.engine.trainer import latest_checkpoint_step
-
-    return latest_checkpoint_step(checkpoint_dir)
-
-
 def find_block_run(attempt_dir: Path) -> Optional[Path]:
     """The ``scalar-nerf-block`` run folder an attempt wrote (``attempt/EXP/scalar-nerf-block/TS``)."""
     runs = sorted(p.parent for p in attempt_dir.glob("*/scalar-nerf-block/*/config.yml"))
@@ -347,11 +340,9 @@ def finished_run(attempt_dir: Path) -> Tuple[Optional[Path], str]:
     run = find_block_run(attempt_dir)
     if run is None:
         return None, "no run folder was written"
-    import yaml
-
-    config = yaml.load((run / "config.yml").read_text(), Loader=yaml.Loader)
+    config = load_run_config(run)
     final = (config.max_num_iterations if config.max_num_iterations > 0 else config.pipeline.block_steps) - 1
-    step = latest_step(run / config.relative_model_dir)
+    step = latest_checkpoint_step(run / config.relative_model_dir)
     if step != final:
         return None, f"its newest checkpoint is step {step}, not the final step {final}"
     return run, ""
@@ -454,7 +445,7 @@ def _format_table(states: Dict[int, BlockState]) -> str:
 def _existing_assembly(assembled_root: Path, global_dir: Path, runs: Dict[int, Path]) -> Optional[Path]:
     wanted = {"global_run": str(global_dir), "blocks": {str(k): str(v) for k, v in sorted(runs.items())}}
     for record in sorted(assembled_root.glob("*/scalar-nerf/*/assembled_from.json"), reverse=True):
-        if json.loads(record.read_text()) == wanted and latest_step(record.parent / "nerfstudio_models") is not None:
+        if json.loads(record.read_text()) == wanted and latest_checkpoint_step(record.parent / "nerfstudio_models") is not None:
             return record.parent
     return None
 

@@ -1,0 +1,31 @@
+"""The contract between :class:`~scalar_nerfstudio.engine.trainer.ScalarTrainer` and its pipeline.
+
+nerfstudio's trainer knows a pipeline only through ``get_train_loss_dict``, ``get_param_groups`` and
+``get_training_callbacks``. Training in phases needs a little more, and this Protocol names it, so
+the trainer asks for it once (``isinstance``) instead of guessing attributes.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Dict, Optional, Protocol, Tuple, runtime_checkable
+
+
+@runtime_checkable
+class PhasedPipeline(Protocol):
+    """A pipeline that trains in phases (ScalarPipeline)."""
+
+    plan: Any
+    """The run's block plan (``blocks/plan.py``: ``BlockPlan``), saved into the run folder."""
+
+    @property
+    def total_steps(self) -> int:
+        """Steps of all phases together."""
+
+    def phase_at(self, step: int) -> Any:
+        """The phase (``start_step``, ``num_steps``, ``end_step``) that trains at ``step``."""
+
+    def param_group_phases(self) -> Dict[str, Tuple[str, Optional[Any]]]:
+        """For each optimiser parameter group: (its template key in ``optimizers``, its phase)."""
+
+    def plan_report(self) -> str:
+        """The split, automatic K, block capacities and phases, for the training log."""

@@ -1,0 +1,65 @@
+"""A preview image of a run in training: one held-out view rendered beside its ground truth.
+
+Written as ``RUN/preview.png`` (replaced atomically, so an image viewer never sees half a file) and
+kept per step as ``RUN/previews/step-NNNNNNNNN.png``, so a user sees what the model has learnt
+without opening the viewer.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+from typing import Tuple
+
+import numpy as np
+import torch
+from PIL import Image
+
+PREVIEW_NAME = "preview.png"
+PREVIEW_DIR = "previews"
+
+
+def _to_uint8(image: torch.Tensor) -> np.ndarray:
+    """[H, W, 3] float in [0, 1] -> [H, W, 3] uint8 (NaN -> 0)."""
+    return (torch.nan_to_num(image.detach().float().cpu(), nan=0.0).clamp(0.0, 1.0) * 255.0 + 0.5).to(torch.uint8).numpy()
+
+
+def _save_png_atomically(image: np.ndarray, path: Path) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        Image.fromarray(image).save(tmp_name, format="PNG")
+        os.chmod(tmp_name, 0o644)
+        os.replace(tmp_name, path)
+    except BaseException:
+        Path(tmp_name).unlink(missing_ok=True)
+        raise
+
+
+@torch.no_grad()
+def write_preview(pipeline, run_dir: Path, step: int) -> Tuple[Path, float]:
+    """Render the first eval view with the pipeline's model (its current fusion) beside the ground
+    truth; returns (the preview's path, the render's PSNR in dB)."""
+    datamanager = pipeline.datamanager
+    dataset = datamanager.eval_dataset
+    camera = dataset.cameras[0:1].to(pipeline.device)
+    model = pipeline.model
+    was_training = model.training
+    model.eval()
+    try:
+        outputs = model.get_outputs_for_camera(camera)
+    finally:
+        model.train(was_training)
+    rendered = outputs["rgb"].float().cpu()  # [H, W, 3]
+    truth = dataset[0]["image"].float()[..., :3]  # [H, W, 3]
+    if truth.shape != rendered.shape:
+        truth = torch.nn.functional.interpolate(truth.permute(2, 0, 1)[None], size=rendered.shape[:2], mode="area")[0].permute(1, 2, 0)
+    mse = torch.mean((rendered.clamp(0, 1) - truth) ** 2).item()
+    psnr = float(-10.0 * np.log10(max(mse, 1e-10)))
+    side_by_side = np.concatenate([_to_uint8(rendered), _to_uint8(truth)], axis=1)
+    path = Path(run_dir) / PREVIEW_NAME
+    _save_png_atomically(side_by_side, Path(run_dir) / PREVIEW_DIR / f"step-{step:09d}.png")
+    _save_png_atomically(side_by_side, path)
+    return path, psnr

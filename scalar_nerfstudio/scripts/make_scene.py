@@ -1,0 +1,192 @@
+"""``scalar-nerf-make-scene``: write one of the project's procedural scenes in nerfstudio format.
+
+Scenes:
+  town       a large town of streets and textured buildings, walked by street-level cameras
+             (transforms.json, images/, 16-bit depths/ in mm, scene.json); too big for one
+             hash table, so scalar-nerf splits it into blocks
+  courtyard  the small courtyard of scalar-nerf-demo (transforms.json, images/)
+
+Train on it with every 8th frame of the walk held out:
+  ns-train scalar-nerf --data DIR nerfstudio-data --eval-mode interval --eval-interval 8
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from pathlib import Path
+from typing import List, NoReturn, Optional
+
+PROG = "scalar-nerf-make-scene"
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse that reports a bad option in one line (exit 2), without the usage block."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text} must be a positive integer")
+    return value
+
+
+def _non_negative_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"{text} must be 0 or more")
+    return value
+
+
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"{text} must be a positive number")
+    return value
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command's options."""
+    parser = _Parser(prog=PROG, description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--scene", choices=("town", "courtyard"), default="town", help="which scene (default: town)")
+    parser.add_argument("--output", "-o", type=Path, required=True, help="scene folder to write (created; must be empty unless --overwrite)")
+    parser.add_argument("--num-images", type=_positive_int, default=None, help="frames (town: 300, courtyard: 40)")
+    parser.add_argument("--width", type=_positive_int, default=None, help="image width in pixels (town: 320, courtyard: 160)")
+    parser.add_argument("--height", type=_positive_int, default=None, help="image height in pixels (town: 240, courtyard: 120)")
+    parser.add_argument("--seed", type=_non_negative_int, default=0, help="random seed; the same seed writes byte-identical files (default 0)")
+    town = parser.add_argument_group("town only")
+    town.add_argument("--blocks-x", type=_positive_int, default=None, help="city blocks along x (default 4)")
+    town.add_argument("--blocks-y", type=_positive_int, default=None, help="city blocks along y (default 3)")
+    town.add_argument("--extent", type=_positive_float, default=None, help="street grid of about this many metres on each side (sets --blocks-x and --blocks-y)")
+    town.add_argument("--block-size", type=_positive_float, default=None, help="side of a city block in metres (default 40)")
+    town.add_argument("--street-width", type=_positive_float, default=None, help="building line to building line in metres (default 14)")
+    town.add_argument("--fov", type=_positive_float, default=None, help="horizontal field of view in degrees (default 45)")
+    town.add_argument("--supersample", type=_positive_int, default=None, help="colour samples per pixel along each axis (default 1)")
+    town.add_argument("--workers", type=_positive_int, default=1, help="processes rendering frames at once (same output; default 1)")
+    parser.add_argument("--overwrite", action="store_true", help="write into a non-empty folder, replacing an earlier scene's frames")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar or summary")
+    return parser
+
+
+def _check_output(parser: argparse.ArgumentParser, output: Path, overwrite: bool) -> None:
+    """Refuse an output that is a file, a non-empty folder (without --overwrite) or not writable."""
+    import os
+
+    if output.exists() and not output.is_dir():
+        parser.error(f"--output {output} exists and is not a folder")
+    if output.is_dir():
+        if any(output.iterdir()) and not overwrite:
+            parser.error(f"--output {output} is not empty (pass --overwrite to write into it)")
+        if not os.access(output, os.W_OK | os.X_OK):
+            parser.error(f"--output {output} is not writable")
+        return
+    parent = output.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
+        parser.error(f"--output {output} cannot be created: {parent} is not a writable folder")
+
+
+def _town(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
+    from scalar_nerfstudio.data.town_scene import TownConfig, blocks_for_extent, build_town, town_camera_poses, write_town
+
+    options = {}
+    for key, name in (("num_images", "num_images"), ("width", "width"), ("height", "height"), ("block_size", "block_size"),
+                      ("street_width", "street_width"), ("fov", "fov_x_deg"), ("supersample", "supersample")):
+        if getattr(args, key) is not None:
+            options[name] = getattr(args, key)
+    if args.extent is not None:
+        if args.blocks_x is not None or args.blocks_y is not None:
+            parser.error("--extent sets the number of blocks; give either --extent or --blocks-x/--blocks-y")
+        base = TownConfig(**{k: v for k, v in options.items() if k in ("block_size", "street_width")})
+        options["blocks_x"] = options["blocks_y"] = blocks_for_extent(args.extent, base.block_size, base.street_width)
+    if args.blocks_x is not None:
+        options["blocks_x"] = args.blocks_x
+    if args.blocks_y is not None:
+        options["blocks_y"] = args.blocks_y
+    try:
+        config = TownConfig(seed=args.seed, **options)
+    except ValueError as error:
+        parser.error(str(error))
+    _check_output(parser, args.output, args.overwrite)
+    start = time.perf_counter()
+    try:
+        path = write_town(args.output, config, progress=not args.quiet, overwrite=args.overwrite, workers=args.workers)
+    except (FileExistsError, PermissionError) as error:
+        parser.error(str(error))
+    seconds = time.perf_counter() - start
+    if not args.quiet:
+        town = build_town(config)
+        sx, sy = config.extent
+        print(
+            f"Wrote {config.num_images} frames of {config.width}x{config.height} of a {config.blocks_x}x{config.blocks_y}-block town "
+            f"({sx:.0f} x {sy:.0f} m, {town.num_buildings} buildings) to {path.parent} in {seconds:.1f} s."
+        )
+        print(_automatic_blocks_line(config, town_camera_poses(town)))
+        print(f"Train: ns-train scalar-nerf --data {path.parent} nerfstudio-data --eval-mode interval --eval-interval 8")
+    return 0
+
+
+def _automatic_blocks_line(config, poses) -> str:
+    """scalar-nerf's automatic K for this capture (every 8th frame held out, T = 2^19)."""
+    import numpy as np
+
+    from scalar_nerfstudio.blocks.capacity import auto_num_blocks, layout_scale
+
+    train = poses[np.arange(len(poses)) % 8 != 0]
+    if len(train) == 0:
+        return "Automatic K: no training frame with every 8th held out."
+    scale = layout_scale(train[:, :3, 3], -train[:, :3, 2], np.full(len(train), config.focal_px))
+    k = auto_num_blocks(scale, 19, len(train), 6, 8)
+    return f"scalar-nerf's automatic K for this capture (eval interval 8, T = 2^19): {k} (layout R = {scale.layout_pixels:.0f} px)."
+
+
+def _courtyard(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
+    from scalar_nerfstudio.data.synthetic_scene import write_scene
+
+    town_only = [f"--{name.replace('_', '-')}" for name in ("blocks_x", "blocks_y", "extent", "block_size", "street_width", "fov", "supersample")
+                 if getattr(args, name) is not None]
+    if town_only:
+        parser.error(f"{', '.join(town_only)}: only for --scene town")
+    _check_output(parser, args.output, args.overwrite)
+    start = time.perf_counter()
+    path = write_scene(args.output, num_images=args.num_images or 40, width=args.width or 160, height=args.height or 120, seed=args.seed)
+    if not args.quiet:
+        print(f"Wrote the courtyard ({args.num_images or 40} frames) to {path.parent} in {time.perf_counter() - start:.1f} s.")
+    return 0
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    """Parse ``argv`` (default: the command line) and write the scene; returns the exit status."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        if args.scene == "town":
+            return _town(args, parser)
+        return _courtyard(args, parser)
+    except OSError as error:  # e.g. the disk filled up or the folder vanished while writing
+        print(f"{PROG}: error: {error}", file=sys.stderr)
+        return 1
+
+
+def entrypoint() -> None:
+    """Console script entry point."""
+    sys.exit(main())
+
+
+if __name__ == "__main__":
+    entrypoint()

@@ -1,0 +1,297 @@
+"""The procedural town scene (scalar_nerfstudio/data/town_scene.py) and scalar-nerf-make-scene.
+
+All sizes are tiny: no training, a few seconds in all.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import subprocess
+import sys
+from pathlib import Path
+from typing import List
+
+import numpy as np
+import pytest
+
+from scalar_nerfstudio.data.town_scene import (
+    DEPTH_PNG_MAX_M,
+    GROUND,
+    TownConfig,
+    build_town,
+    intersect_town,
+    load_town,
+    points_inside_buildings,
+    points_on_streets,
+    read_depth_png,
+    render_town_image,
+    render_town_rays,
+    town_boxes,
+    town_camera_poses,
+    write_town,
+)
+
+#: A 2 x 1-block town, 17 frames (eval interval 8 holds out frames 0, 8 and 16) of 40 x 30 pixels.
+TINY = TownConfig(num_images=17, width=40, height=30, blocks_x=2, blocks_y=1, seed=3)
+
+
+def _files(folder: Path) -> List[Path]:
+    return sorted(p.relative_to(folder) for p in folder.rglob("*") if p.is_file())
+
+
+@pytest.fixture(scope="module")
+def tiny_scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    folder = tmp_path_factory.mktemp("town") / "scene"
+    write_town(folder, TINY, progress=False)
+    return folder
+
+
+# ------------------------------------------------------------------------------ determinism
+
+
+def test_same_seed_writes_byte_identical_files(tiny_scene: Path, tmp_path: Path) -> None:
+    again = tmp_path / "again"
+    write_town(again, TINY, progress=False)
+    files = _files(tiny_scene)
+    assert files == _files(again)
+    assert len([f for f in files if f.parts[0] == "images"]) == TINY.num_images
+    assert len([f for f in files if f.parts[0] == "depths"]) == TINY.num_images
+    for name in files:
+        assert (tiny_scene / name).read_bytes() == (again / name).read_bytes(), f"{name} differs between two writes with the same seed"
+
+
+def test_other_seed_differs(tiny_scene: Path, tmp_path: Path) -> None:
+    other = tmp_path / "other"
+    write_town(other, dataclasses.replace(TINY, seed=4), progress=False)
+    for name in ("transforms.json", "scene.json", "images/frame_00001.png"):
+        assert (tiny_scene / name).read_bytes() != (other / name).read_bytes(), f"{name} is the same for seeds 3 and 4"
+
+
+def test_workers_do_not_change_the_output(tiny_scene: Path, tmp_path: Path) -> None:
+    parallel = tmp_path / "parallel"
+    write_town(parallel, TINY, progress=False, workers=2)
+    for name in _files(tiny_scene):
+        assert (tiny_scene / name).read_bytes() == (parallel / name).read_bytes(), f"{name} differs with 2 workers"
+
+
+def test_scene_json_records_options_and_geometry(tiny_scene: Path) -> None:
+    content = json.loads((tiny_scene / "scene.json").read_text())
+    assert TownConfig.from_json(content["config"]) == TINY
+    town = load_town(tiny_scene)
+    boxes = np.array([[box["lo"], box["hi"]] for box in content["boxes"]])
+    np.testing.assert_array_equal(boxes, town_boxes(town))
+    assert town.num_buildings > 10 and (boxes[:, 1, 2] > 5.0).all() and (boxes[:, 0, 2] == 0.0).all()
+
+
+def test_config_rejects_bad_options() -> None:
+    for bad, field in (({"width": 0}, "width"), ({"num_images": -1}, "num_images"), ({"blocks_x": 0}, "blocks_x"),
+                       ({"block_size": -5.0}, "block_size"), ({"road_width": 20.0}, "road_width"), ({"fov_x_deg": 180.0}, "fov_x_deg")):
+        with pytest.raises(ValueError, match=field):
+            TownConfig(**bad)
+
+
+# -------------------------------------------------------------------------- depth and geometry
+
+
+def _street_facing_box(town) -> int:
+    """A building whose south face lies on the building line of an east-west street."""
+    half = town.config.street_width / 2.0
+    for b in range(town.num_buildings):
+        on_line = np.isclose(town.lo[b, 1], town.street_y + half).any()
+        if on_line and town.hi[b, 0] - town.lo[b, 0] > 4.0 and town.lo[b, 0] > town.street_x[0] and town.hi[b, 0] < town.street_x[-1]:
+            return b
+    raise AssertionError("no building on a street's building line")
+
+
+def test_depth_of_a_known_wall() -> None:
+    """A camera 8 m in front of a facade, looking straight at it: every pixel whose ray meets the
+    facade rectangle sees that building at z-depth 8 m, the centre pixel at ray depth 8 m; the rays
+    below its foot see the ground at their analytic distance."""
+    config = TownConfig(num_images=4, width=33, height=25, blocks_x=2, blocks_y=2, seed=1)
+    town = build_town(config)
+    b = _street_facing_box(town)
+    wall_y, distance = town.lo[b, 1], 8.0
+    centre = np.array([(town.lo[b, 0] + town.hi[b, 0]) / 2.0, wall_y - distance, 1.7])
+    assert points_on_streets(centre[None], town)[0] and not points_inside_buildings(centre[None], town)[0]
+    c2w = np.eye(4)
+    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = (1, 0, 0), (0, 0, 1), (0, -1, 0), centre  # OpenGL: looks along -z = +y
+    rgb, ray_depth, z_depth = render_town_image(town, c2w)
+    assert rgb.shape == (25, 33, 3) and ray_depth.shape == (25, 33)
+    assert abs(ray_depth[12, 16] - distance) < 1e-9 and abs(z_depth[12, 16] - distance) < 1e-9
+
+    # Analytic: the pixel rays' intersections with the facade plane y = wall_y.
+    focal = config.focal_px
+    u, v = np.meshgrid(np.arange(33) + 0.5, np.arange(25) + 0.5)
+    directions = np.stack([(u - 16.5) / focal, np.ones_like(u), -(v - 12.5) / focal], axis=-1)  # world: x right, +y forward, z up
+    on_plane = centre + directions * distance
+    on_wall = (on_plane[..., 0] > town.lo[b, 0] + 1e-6) & (on_plane[..., 0] < town.hi[b, 0] - 1e-6) & (on_plane[..., 2] > 1e-6) & (on_plane[..., 2] < town.hi[b, 2])
+    assert on_wall.sum() > 100
+    np.testing.assert_allclose(z_depth[on_wall], distance, atol=1e-9)
+    np.testing.assert_allclose(ray_depth[on_wall], distance * np.linalg.norm(directions[on_wall], axis=-1), atol=1e-9)
+    hits = intersect_town(np.broadcast_to(centre, (int(on_wall.sum()), 3)), directions[on_wall], town)
+    assert (hits.surface == b).all()
+    np.testing.assert_array_equal(hits.normal, np.tile([0.0, -1.0, 0.0], (len(hits.depth), 1)))
+    # Rays below the facade's foot hit the ground in front of it, at the analytic distance.
+    ground = on_plane[..., 2] < -1e-6
+    assert ground.any()
+    t_ground = 1.7 / (-directions[ground][:, 2]) * np.linalg.norm(directions[ground], axis=-1)
+    hits = intersect_town(np.broadcast_to(centre, (int(ground.sum()), 3)), directions[ground], town)
+    assert (hits.surface == GROUND).all()
+    np.testing.assert_allclose(hits.depth, t_ground, rtol=1e-12)
+
+
+def test_texture_is_multi_view_consistent() -> None:
+    """The colour of a surface point does not depend on where it is seen from."""
+    town = build_town(TownConfig(num_images=4, width=16, height=12, blocks_x=2, blocks_y=2, seed=1))
+    b = _street_facing_box(town)
+    rng = np.random.default_rng(0)
+    targets = np.stack([rng.uniform(town.lo[b, 0] + 0.5, town.hi[b, 0] - 0.5, 50), np.full(50, town.lo[b, 1]), rng.uniform(0.3, town.hi[b, 2] - 0.5, 50)], axis=1)
+    colours = []
+    for eye in (np.array([0.0, -3.0, 0.1]), np.array([2.5, -5.5, 0.4]), np.array([-3.0, -2.0, -0.1])):  # in the street, in front of the facade
+        origins = targets + eye
+        rgb, depth = render_town_rays(origins, -np.broadcast_to(eye, origins.shape), town)
+        np.testing.assert_allclose(depth, np.linalg.norm(eye), rtol=1e-9)
+        colours.append(rgb)
+    np.testing.assert_allclose(colours[0], colours[1], atol=1e-9)
+    np.testing.assert_allclose(colours[0], colours[2], atol=1e-9)
+    assert np.ptp(colours[0], axis=0).max() > 0.1, "the facade should carry texture, not one flat colour"
+
+
+def test_depth_png_round_trips(tiny_scene: Path) -> None:
+    """The 16-bit PNGs hold the exact z-depth within 1 mm (0 for the sky and beyond 65.535 m), and
+    nerfstudio's depth loader reads the same values."""
+    from nerfstudio.data.utils.data_utils import get_depth_image_from_path
+
+    town = load_town(tiny_scene)
+    frames = json.loads((tiny_scene / "transforms.json").read_text())["frames"]
+    seen_sky = False
+    for frame in frames[:6]:
+        _, _, z_depth = render_town_image(town, np.array(frame["transform_matrix"]))
+        png = read_depth_png(tiny_scene / frame["depth_file_path"])
+        known = np.isfinite(z_depth) & (z_depth <= DEPTH_PNG_MAX_M)
+        assert known.mean() > 0.3
+        assert np.abs(png[known] - z_depth[known]).max() <= 0.5e-3 + 1e-9
+        assert (png[~known] == 0).all()
+        seen_sky |= bool((~np.isfinite(z_depth)).any())
+        loaded = get_depth_image_from_path(tiny_scene / frame["depth_file_path"], TINY.height, TINY.width, 1e-3)[..., 0].numpy()
+        np.testing.assert_allclose(loaded, png, atol=1e-6)
+    assert seen_sky, "some frame should see the sky"
+
+
+# ----------------------------------------------------------------------------- nerfstudio
+
+
+def test_nerfstudio_parses_the_scene_and_cameras_walk_the_streets(tiny_scene: Path) -> None:
+    from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
+
+    parser = NerfstudioDataParserConfig(data=tiny_scene, eval_mode="interval", eval_interval=8).setup()
+    train = parser.get_dataparser_outputs(split="train")
+    val = parser.get_dataparser_outputs(split="val")
+    assert [p.name for p in val.image_filenames] == ["frame_00000.png", "frame_00008.png", "frame_00016.png"]
+    assert len(train.image_filenames) == TINY.num_images - 3
+    assert [p.name for p in train.metadata["depth_filenames"]] == [p.name for p in train.image_filenames]
+    assert train.cameras.width[0].item() == TINY.width and abs(train.cameras.fx[0].item() - TINY.focal_px) < 1e-3
+
+    # Undo nerfstudio's orientation, centring and scaling: the centres are the written ones.
+    transform = train.dataparser_transform.double().numpy()
+    scale = float(train.dataparser_scale)
+    centres = (val.cameras.camera_to_worlds[:, :3, 3].double().numpy() / scale - transform[:, 3]) @ transform[:, :3]
+    frames = json.loads((tiny_scene / "transforms.json").read_text())["frames"]
+    written = np.array([f["transform_matrix"] for f in frames])[:, :3, 3]
+    np.testing.assert_allclose(centres, written[[0, 8, 16]], atol=1e-4)
+
+    town = load_town(tiny_scene)
+    assert points_on_streets(written, town).all()
+    assert not points_inside_buildings(written, town, margin=1.0).any()
+    low, high = TINY.camera_height
+    assert ((written[:, 2] >= low) & (written[:, 2] <= high)).all()
+
+    # nerfstudio's own rays for an eval frame, mapped back to the town, see the written depth.
+    rays = val.cameras.generate_rays(camera_indices=1)
+    origins = (rays.origins.reshape(-1, 3).double().numpy() / scale - transform[:, 3]) @ transform[:, :3]
+    directions = rays.directions.reshape(-1, 3).double().numpy() @ transform[:, :3]
+    _, depth = render_town_rays(origins, directions, town)
+    cos = -(directions / np.linalg.norm(directions, axis=1, keepdims=True)) @ np.array(frames[8]["transform_matrix"])[:3, 2]
+    png = read_depth_png(tiny_scene / frames[8]["depth_file_path"]).reshape(-1)
+    known = png > 0
+    assert known.mean() > 0.3
+    assert np.median(np.abs(depth[known] * cos[known] - png[known])) < 2e-3
+
+
+def test_all_cameras_on_streets_for_the_default_town() -> None:
+    town = build_town(TownConfig())
+    centres = town_camera_poses(town)[:, :3, 3]
+    assert points_on_streets(centres, town).all()
+    assert not points_inside_buildings(centres, town, margin=1.0).any()
+
+
+def test_default_town_gets_more_than_one_automatic_block() -> None:
+    """scalar-nerf's capacity rule (T = 2^19, 6 images per block, at most 8) splits the default town."""
+    from scalar_nerfstudio.blocks.capacity import auto_num_blocks, layout_scale
+
+    config = TownConfig()
+    poses = town_camera_poses(build_town(config))
+    train = poses[np.arange(len(poses)) % 8 != 0]
+    scale = layout_scale(train[:, :3, 3], -train[:, :3, 2], np.full(len(train), config.focal_px))
+    assert auto_num_blocks(scale, 19, len(train), 6, 8) > 1
+
+
+def test_check_scene_accepts_the_town(tiny_scene: Path) -> None:
+    from scalar_nerfstudio.data.validation import check_scene
+
+    assert check_scene(tiny_scene, eval_interval=8) == TINY.num_images
+
+
+# ------------------------------------------------------------------------------------- CLI
+
+
+def _cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "scalar_nerfstudio.scripts.make_scene", *args], capture_output=True, text=True, timeout=300)
+
+
+def test_cli_writes_a_town_and_a_courtyard(tmp_path: Path) -> None:
+    result = _cli("--output", str(tmp_path / "town"), "--num-images", "3", "--width", "24", "--height", "16", "--blocks-x", "1", "--blocks-y", "1", "--seed", "2")
+    assert result.returncode == 0, result.stderr
+    assert "automatic K" in result.stdout
+    content = json.loads((tmp_path / "town" / "transforms.json").read_text())
+    assert len(content["frames"]) == 3 and content["w"] == 24 and content["h"] == 16
+    assert json.loads((tmp_path / "town" / "scene.json").read_text())["config"]["seed"] == 2
+    result = _cli("--scene", "courtyard", "--output", str(tmp_path / "courtyard"), "--num-images", "2", "--width", "16", "--height", "12", "--quiet")
+    assert result.returncode == 0, result.stderr
+    assert len(json.loads((tmp_path / "courtyard" / "transforms.json").read_text())["frames"]) == 2
+    # --overwrite writes into the non-empty folder and leaves no stale frame behind.
+    result = _cli("--output", str(tmp_path / "town"), "--num-images", "2", "--width", "24", "--height", "16", "--blocks-x", "1", "--blocks-y", "1", "--overwrite", "--quiet")
+    assert result.returncode == 0, result.stderr
+    assert len(list((tmp_path / "town" / "images").iterdir())) == 2
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--width", "0"], "--width"),
+        (["--height", "-4"], "--height"),
+        (["--num-images", "many"], "--num-images"),
+        (["--blocks-x", "0"], "--blocks-x"),
+        (["--extent", "100", "--blocks-x", "2"], "--extent"),
+        (["--street-width", "5"], "road_width"),
+        (["--scene", "courtyard", "--blocks-x", "2"], "only for --scene town"),
+        (["NON_EMPTY"], "not empty"),
+        (["A_FILE"], "not a folder"),
+        (["UNDER_A_FILE"], "cannot be created"),
+    ],
+)
+def test_cli_rejects_bad_options_in_one_line(tmp_path: Path, args: List[str], message: str) -> None:
+    (tmp_path / "full").mkdir()
+    (tmp_path / "full" / "keep.txt").write_text("user data")
+    (tmp_path / "file.txt").write_text("")
+    output = {"NON_EMPTY": tmp_path / "full", "A_FILE": tmp_path / "file.txt", "UNDER_A_FILE": tmp_path / "file.txt" / "scene"}
+    target = output.get(args[0], tmp_path / "new")
+    options = [] if args[0] in output else args
+    result = _cli("--output", str(target), "--num-images", "2", "--width", "16", "--height", "12", *options)
+    assert result.returncode == 2, result.stdout + result.stderr
+    assert "Traceback" not in result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "error" in lines[0] and message in lines[0], result.stderr
+    assert (tmp_path / "full" / "keep.txt").read_text() == "user data"
+    assert not (tmp_path / "new").exists() or not any((tmp_path / "new").iterdir())
