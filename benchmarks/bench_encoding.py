@@ -13,14 +13,13 @@ from __future__ import annotations
 
 import argparse
 import os
-import statistics
-import time
 
 import torch
 from nerfstudio.field_components.encodings import HashEncoding
 from torch import Tensor, nn
 
 from scalar_nerfstudio.encodings import HashGridEncoding
+from scalar_nerfstudio.engine.timing import median_seconds
 
 
 def time_fwd_bwd(module: nn.Module, positions: Tensor, upstream: Tensor, warmup: int, repeats: int) -> float:
@@ -32,14 +31,7 @@ def time_fwd_bwd(module: nn.Module, positions: Tensor, upstream: Tensor, warmup:
             p.grad = None
         module(positions).backward(upstream)
 
-    for _ in range(warmup):
-        step()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        step()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
+    return median_seconds(step, repeats, warmup)
 
 
 def build_modules(features: int, log2_hashmap_size: int, max_resolution: int) -> dict[str, nn.Module]:

@@ -22,67 +22,63 @@ import time
 from pathlib import Path
 from typing import Dict, List
 
-RUNNER = r"""
-import json, sys, time
-from pathlib import Path
-import torch
-from scalar_nerfstudio.scripts._benchmark_runner import trainer_config
 
-method, data, downscale, seconds, steps, out = sys.argv[1], sys.argv[2], int(sys.argv[3]), float(sys.argv[4]), int(sys.argv[5]), Path(sys.argv[6])
-# the benchmark runner's set-up (every 8th image held out, no evaluation or checkpoints while
-# training; LPIPS stubbed out for nerfacto, whose weights would be downloaded), on the CPU
-overrides = {"machine.device_type": "cpu", "mixed_precision": False, "pipeline.datamanager.train_num_rays_per_batch": 4096}
-if method == "scalar-nerf":
-    overrides["max_num_iterations"] = steps
-config = trainer_config({"method": method, "data": data, "downscale": downscale, "output_dir": str(out.parent / "runs"), "overrides": overrides})
-config.set_timestamp()
-trainer = config.setup(local_rank=0, world_size=1)
-trainer.setup()
+def train_one(method: str, data: str, downscale: int, seconds: float, steps: int, out: Path) -> None:
+    """Train ``method`` for ``seconds`` of wall clock (or ``steps``), evaluate, write ``out`` (JSON).
 
-iteration = trainer.train_iteration
-clock = {"train_seconds": 0.0, "steps": 0, "start": None}
+    Runs in a process of its own (``--worker``), so that each method starts from a fresh process.
+    """
+    import torch
 
-def timed_iteration(step):  # wall clock from the first iteration on, callbacks (e.g. grid updates) included
-    clock["start"] = clock["start"] or time.perf_counter()
-    result = iteration(step)
-    clock["train_seconds"] = time.perf_counter() - clock["start"]
-    clock["steps"] += 1
-    if clock["train_seconds"] >= seconds:
-        trainer.stop_training = True
-    return result
+    from scalar_nerfstudio.engine.timing import time_train_iterations
+    from scalar_nerfstudio.scripts._benchmark_runner import trainer_config
 
-trainer.train_iteration = timed_iteration
-trainer.train()
-pipeline = trainer.pipeline
-pipeline.eval()
-start = time.perf_counter()
-metrics = pipeline.get_average_eval_image_metrics()
-num_eval = len(pipeline.datamanager.fixed_indices_eval_dataloader)
-render_ms = 1000.0 * (time.perf_counter() - start) / max(num_eval, 1)
-rays_per_step = pipeline.datamanager.get_train_rays_per_batch()
-collider = pipeline.model.collider
-result = {
-    "method": method,
-    "steps": clock["steps"],
-    "train_seconds": clock["train_seconds"],
-    "train_rays_per_sec": clock["steps"] * rays_per_step / max(clock["train_seconds"], 1e-9),
-    "psnr": metrics["psnr"],
-    "ssim": metrics["ssim"],
-    "render_ms_per_image": render_ms,
-    "eval_images": num_eval,
-    "threads": torch.get_num_threads(),
-    "near_plane": collider.near_plane,
-    "reset_near_plane": collider.reset_near_plane,
-}
-if method != "nerfacto" and "lpips" in metrics:
-    result["lpips"] = metrics["lpips"]
-# the same trained model rendered with the other near-plane rule (nerfstudio resets the near plane
-# to 0 outside training by default; scalar-nerf keeps the training one)
-collider.reset_near_plane = not collider.reset_near_plane
-other = pipeline.get_average_eval_image_metrics()
-result["other_near_plane"] = {"reset_near_plane": collider.reset_near_plane, "psnr": other["psnr"], "ssim": other["ssim"]}
-out.write_text(json.dumps(result))
-"""
+    # the benchmark runner's set-up (every 8th image held out, no evaluation or checkpoints while
+    # training; LPIPS stubbed out for nerfacto, whose weights would be downloaded), on the CPU
+    overrides = {"machine.device_type": "cpu", "mixed_precision": False, "pipeline.datamanager.train_num_rays_per_batch": 4096}
+    if method == "scalar-nerf":
+        overrides["max_num_iterations"] = steps
+    config = trainer_config({"method": method, "data": data, "downscale": downscale, "output_dir": str(out.parent / "runs"), "overrides": overrides})
+    config.set_timestamp()
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup()
+
+    def stop_when_out_of_time(step: int, result, clock) -> None:
+        if clock.wall_s >= seconds:
+            trainer.stop_training = True
+
+    # wall clock from the first iteration on, callbacks (e.g. grid updates) included
+    clock = time_train_iterations(trainer, stop_when_out_of_time)
+    trainer.train()
+    pipeline = trainer.pipeline
+    pipeline.eval()
+    start = time.perf_counter()
+    metrics = pipeline.get_average_eval_image_metrics()
+    num_eval = len(pipeline.datamanager.fixed_indices_eval_dataloader)
+    render_ms = 1000.0 * (time.perf_counter() - start) / max(num_eval, 1)
+    rays_per_step = pipeline.datamanager.get_train_rays_per_batch()
+    collider = pipeline.model.collider
+    result = {
+        "method": method,
+        "steps": clock.steps,
+        "train_seconds": clock.wall_s,
+        "train_rays_per_sec": clock.steps * rays_per_step / max(clock.wall_s, 1e-9),
+        "psnr": metrics["psnr"],
+        "ssim": metrics["ssim"],
+        "render_ms_per_image": render_ms,
+        "eval_images": num_eval,
+        "threads": torch.get_num_threads(),
+        "near_plane": collider.near_plane,
+        "reset_near_plane": collider.reset_near_plane,
+    }
+    if method != "nerfacto" and "lpips" in metrics:
+        result["lpips"] = metrics["lpips"]
+    # the same trained model rendered with the other near-plane rule (nerfstudio resets the near plane
+    # to 0 outside training by default; scalar-nerf keeps the training one)
+    collider.reset_near_plane = not collider.reset_near_plane
+    other = pipeline.get_average_eval_image_metrics()
+    result["other_near_plane"] = {"reset_near_plane": collider.reset_near_plane, "psnr": other["psnr"], "ssim": other["ssim"]}
+    out.write_text(json.dumps(result))
 
 
 def mean_image_baseline(data: Path, downscale: int) -> float:
@@ -101,7 +97,8 @@ def mean_image_baseline(data: Path, downscale: int) -> float:
 def run_method(method: str, args: argparse.Namespace, workdir: Path) -> Dict:
     out = workdir / f"{method}.json"
     steps = args.scalar_steps if method == "scalar-nerf" else 100000
-    command = [sys.executable, "-c", RUNNER, method, str(args.data), str(args.downscale), str(args.minutes * 60), str(steps), str(out)]
+    command = [sys.executable, str(Path(__file__).resolve()), "--worker", method, str(args.data), str(args.downscale),
+               str(args.minutes * 60), str(steps), str(out)]
     print(f"[{time.strftime('%H:%M:%S')}] training {method} for {args.minutes} min ...", flush=True)
     subprocess.run(command, check=True, stdout=subprocess.DEVNULL if not args.verbose else None)
     return json.loads(out.read_text())
@@ -117,7 +114,12 @@ def main() -> None:
     parser.add_argument("--workdir", type=Path, default=Path("outputs/bench_training"))
     parser.add_argument("--json", type=Path, default=None, help="also write the results here")
     parser.add_argument("--verbose", action="store_true")
+    parser.add_argument("--worker", nargs=6, help=argparse.SUPPRESS)  # one method, in its own process (run_method)
     args = parser.parse_args()
+    if args.worker:
+        method, data, downscale, seconds, steps, out = args.worker
+        train_one(method, data, int(downscale), float(seconds), int(steps), Path(out))
+        return
     args.workdir.mkdir(parents=True, exist_ok=True)
     results: List[Dict] = [run_method(m, args, args.workdir) for m in args.methods]
     baseline = mean_image_baseline(args.data, args.downscale)

@@ -10,7 +10,6 @@ and the profiler's table for step ``--profile-step`` (after the occupancy warm-u
 from __future__ import annotations
 
 import argparse
-import time
 from pathlib import Path
 
 import torch
@@ -25,6 +24,7 @@ def main() -> None:
     parser.add_argument("--output-dir", type=Path, default=Path("outputs/profile_training_step"))
     args = parser.parse_args()
 
+    from scalar_nerfstudio.engine.timing import time_train_iterations
     from scalar_nerfstudio.scripts._benchmark_runner import trainer_config
 
     # the benchmark's trainer set-up: eval every 8th image, no evaluation or checkpoints while training
@@ -37,26 +37,30 @@ def main() -> None:
     trainer.setup()
 
     iteration = trainer.train_iteration
-    window = {"start": time.perf_counter(), "steps": 0}
 
-    def observed_iteration(step: int):
-        if step == args.profile_step:
-            with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as profile:
-                result = iteration(step)
-            print(profile.key_averages().table(sort_by="self_cpu_time_total", row_limit=20), flush=True)
-            return result
-        result = iteration(step)
-        window["steps"] += 1
-        if (step + 1) % 25 == 0:
-            now = time.perf_counter()
-            metrics = result[2]
-            print(f"step {step + 1}: {(now - window['start']) / max(window['steps'], 1):.3f} s/step, "
-                  f"{float(metrics['samples_per_ray']):.1f} samples/ray with gradients, "
-                  f"{float(metrics['occupied_fraction']):.3f} of the grid occupied", flush=True)
-            window.update(start=now, steps=0)
+    def profiled_iteration(step: int):
+        if step != args.profile_step:
+            return iteration(step)
+        with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as profile:
+            result = iteration(step)
+        print(profile.key_averages().table(sort_by="self_cpu_time_total", row_limit=20), flush=True)
         return result
 
-    trainer.train_iteration = observed_iteration
+    trainer.train_iteration = profiled_iteration
+    window = {"wall_s": 0.0, "steps": 0}
+
+    def report(step: int, result, clock) -> None:  # seconds per step over the last 25 (the profiled step not counted)
+        if step == args.profile_step:
+            return
+        window["steps"] += 1
+        if (step + 1) % 25 == 0:
+            metrics = result[2]
+            print(f"step {step + 1}: {(clock.wall_s - window['wall_s']) / max(window['steps'], 1):.3f} s/step, "
+                  f"{float(metrics['samples_per_ray']):.1f} samples/ray with gradients, "
+                  f"{float(metrics['occupied_fraction']):.3f} of the grid occupied", flush=True)
+            window.update(wall_s=clock.wall_s, steps=0)
+
+    time_train_iterations(trainer, report)
     trainer.train()
 
 

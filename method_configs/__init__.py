@@ -10,18 +10,17 @@ from dataclasses import dataclass
 from typing import Type
 
 import torch
-from nerfstudio.configs.base_config import MachineConfig, ViewerConfig
+from nerfstudio.configs.base_config import ViewerConfig
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.plugins.types import MethodSpecification
 
+from scalar_nerfstudio.engine.device import AutoMachineConfig
 from scalar_nerfstudio.engine.schedulers import WarmupExponentialDecaySchedulerConfig
 from scalar_nerfstudio.engine.trainer import ScalarBlockTrainerConfig, ScalarTrainerConfig
 from scalar_nerfstudio.data.datamanager import ScalarDataManagerConfig
 from scalar_nerfstudio.models.scene_model import ScalarSceneModelConfig
 from scalar_nerfstudio.pipeline import ScalarPipelineConfig
-
-CUDA = torch.cuda.is_available()
 
 
 @dataclass
@@ -46,13 +45,11 @@ def global_trainer_config(method_name: str = "scalar-nerf", config_class: Type[S
         steps_per_eval_batch=500,
         steps_per_eval_image=500,
         steps_per_eval_all_images=100000,
-        mixed_precision=CUDA,
-        machine=MachineConfig(device_type="cuda" if CUDA else "cpu"),
+        mixed_precision=True,  # on CUDA only: the device is chosen when training starts
+        machine=AutoMachineConfig(),
         pipeline=ScalarPipelineConfig(
             datamanager=ScalarDataManagerConfig(
                 dataparser=NerfstudioDataParserConfig(eval_mode="interval", eval_interval=8),
-                train_num_rays_per_batch=4096,
-                eval_num_rays_per_batch=4096,
             ),
             model=ScalarSceneModelConfig(eval_num_rays_per_chunk=1 << 14),
         ),

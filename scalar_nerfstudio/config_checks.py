@@ -17,7 +17,7 @@ import tempfile
 import warnings
 from dataclasses import replace
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any, Optional, TypeGuard
 
 __all__ = ["OptionError", "check_block_plan", "check_options", "check_output_dir", "check_pipeline_options", "check_trainer_options"]
 
@@ -39,7 +39,7 @@ def _show(value: Any) -> str:
     return f"{value:g}" if isinstance(value, float) else str(value)
 
 
-def _is_int(value: Any) -> bool:
+def _is_int(value: Any) -> TypeGuard[int]:
     return isinstance(value, int) and not isinstance(value, bool)
 
 
@@ -92,8 +92,8 @@ def check_pipeline_options(pipeline: Any, num_train_images: Optional[int] = None
     _at_least(pipeline, "global_steps", 0)
     _at_least(pipeline, "block_steps", 0)
     if getattr(pipeline, "global_steps", 1) == 0 and (getattr(pipeline, "block_steps", 1) == 0 or not getattr(pipeline, "train_blocks", True)):
-        raise OptionError("--pipeline.global-steps 0 with no block steps leaves nothing to train; give the global phase "
-                          "(--pipeline.global-steps) or the blocks (--pipeline.block-steps) some steps.")
+        raise OptionError("--pipeline.global-steps 0 leaves nothing to train (the blocks get no steps either); give the global "
+                          "phase (--pipeline.global-steps) or the blocks (--pipeline.block-steps, --pipeline.train-blocks True) some steps.")
     _bounds(pipeline, "block_log2_hashmap_bounds", 1, MAX_LOG2_HASHMAP_SIZE)
     _bounds(pipeline, "block_max_resolution_bounds", 1)
     log2_size = getattr(pipeline, "block_log2_hashmap_size", None)

@@ -173,18 +173,40 @@ def select_winner(block_values: Tensor, winner: Tensor, fallback: Tensor | None 
 # --------------------------------------------------------------------------- distance based
 
 
+def _compute_dtype(*tensors: Tensor) -> torch.dtype:
+    """The dtype fusion computes in: the inputs' common floating dtype, at least float32.
+
+    Never promoted further: float32 inputs are computed in float32 (float64 is slow on consumer GPUs
+    and unsupported on MPS); the formulations below are what keeps float32 safe.
+    """
+    dtype = torch.float32
+    for tensor in tensors:
+        if tensor.is_floating_point():
+            dtype = torch.promote_types(dtype, tensor.dtype)
+    return dtype
+
+
+def _norm(vectors: Tensor) -> Tensor:
+    """Euclidean norm over the last axis without overflow or underflow: ``m * ||v / m||`` with ``m = max |v_i|``
+    (squaring 1e-25 or 1e20 directly gives 0 or inf in float32)."""
+    scale = vectors.abs().amax(dim=-1, keepdim=True)
+    unit = vectors / torch.where(scale > 0, scale, torch.ones_like(scale))
+    return scale.squeeze(-1) * torch.linalg.vector_norm(unit, dim=-1)
+
+
 def _distances(camera_origin: Tensor, block_centres: Tensor) -> Tensor:
     """Euclidean distances: ``[K]`` for an origin ``[3]``, ``[K, N]`` for origins ``[N, 3]``."""
     if block_centres.ndim != 2 or block_centres.shape[1] != 3 or block_centres.shape[0] < 1:
         raise ValueError(f"block_centres must have shape [K, 3] with K >= 1, got {list(block_centres.shape)}")
-    origin = camera_origin.to(device=block_centres.device, dtype=torch.float64)
-    centres = block_centres.to(torch.float64)
+    dtype = _compute_dtype(camera_origin, block_centres)
+    origin = camera_origin.to(device=block_centres.device, dtype=dtype)
+    centres = block_centres.to(dtype)
     if not (bool(torch.isfinite(origin).all()) and bool(torch.isfinite(centres).all())):
         raise ValueError("camera_origin and block_centres must be finite (found NaN/inf)")
     if origin.shape == (3,):
-        return torch.linalg.vector_norm(centres - origin, dim=-1)
+        return _norm(centres - origin)
     if origin.ndim == 2 and origin.shape[1] == 3:
-        return torch.linalg.vector_norm(centres[:, None, :] - origin[None], dim=-1)
+        return _norm(centres[:, None, :] - origin[None])
     raise ValueError(f"camera_origin must have shape [3] or [N, 3], got {list(camera_origin.shape)}")
 
 
@@ -223,17 +245,19 @@ def idw_weights(
     dist = _distances(camera_origin, block_centres)
     valid_mask = _valid_mask(valid, dist.shape, dist.device)
     if gamma == 0.0:
-        raw = valid_mask.to(torch.float64)
+        raw = valid_mask.to(dist.dtype)
     else:
-        # log-domain softmax: no overflow/underflow for tiny/huge distances or large gamma.
-        log_w = -gamma * torch.log(dist.clamp_min(torch.finfo(torch.float64).tiny))
-        log_w = torch.where(valid_mask, log_w, torch.full_like(log_w, -float("inf")))
-        log_w = log_w - log_w.max(dim=0, keepdim=True).values.nan_to_num(neginf=0.0)
-        raw = torch.exp(log_w)
+        # w_k / w_max = (d_min / d_k)^gamma = exp(-gamma log(d_k / d_min)): the ratio is taken before the
+        # log, so its rounding (not that of log d, ~|log d| eps) is what gamma multiplies, and nothing
+        # overflows or underflows for tiny or huge distances or a large gamma (a ratio of inf gives 0).
+        far = torch.full_like(dist, float("inf"))
+        nearest = torch.where(valid_mask, dist, far).amin(dim=0, keepdim=True)
+        ratio = dist / torch.where(nearest > 0, nearest, torch.ones_like(nearest))  # >= 1 where valid, but at a centre (below)
+        raw = torch.where(valid_mask, torch.exp(-gamma * torch.log(ratio)), torch.zeros_like(dist))
         at_centre = (dist == 0) & valid_mask
         raw = torch.where(at_centre.any(dim=0, keepdim=True), at_centre.to(raw), raw)
     total = raw.sum(dim=0, keepdim=True)
-    weights = torch.where(total > 0, raw / total.clamp_min(1e-300), torch.zeros_like(raw))
+    weights = torch.where(total > 0, raw / torch.where(total > 0, total, torch.ones_like(total)), torch.zeros_like(raw))
     out_dtype = block_centres.dtype if block_centres.is_floating_point() else torch.float32
     return weights.to(out_dtype)
 
@@ -272,7 +296,8 @@ def fuse_weighted(block_values: Tensor, weights: Tensor, fallback: Tensor | None
     """
     _check_block_values(block_values)
     num_blocks, num_pixels, _ = block_values.shape
-    weights = weights.to(device=block_values.device, dtype=torch.float64)
+    dtype = _compute_dtype(block_values, weights)
+    weights = weights.to(device=block_values.device, dtype=dtype)
     if weights.shape == (num_blocks,):
         weights = weights[:, None].expand(num_blocks, num_pixels)
     if weights.shape != (num_blocks, num_pixels):
@@ -281,13 +306,17 @@ def fuse_weighted(block_values: Tensor, weights: Tensor, fallback: Tensor | None
         raise ValueError("weights must be finite and non-negative")
     usable = torch.isfinite(block_values).all(dim=-1)
     weights = torch.where(usable, weights, torch.zeros_like(weights))
-    total = weights.sum(dim=0)
-    values = torch.where(usable[..., None], block_values, torch.zeros_like(block_values)).to(torch.float64)
-    fused = (weights[..., None] * values).sum(dim=0) / total.clamp_min(1e-300)[:, None]
+    # Normalised per pixel before the sum: divided by the largest weight, then by the sum (1..K), the
+    # weights are a convex combination, so neither huge nor tiny weights over- or underflow.
+    largest = weights.amax(dim=0)
+    scaled = weights / torch.where(largest > 0, largest, torch.ones_like(largest))
+    shares = scaled / scaled.sum(dim=0).clamp_min(1.0)
+    values = torch.where(usable[..., None], block_values, torch.zeros_like(block_values)).to(dtype)
+    fused = (shares[..., None] * values).sum(dim=0)
     fill = torch.full_like(fused, float("nan")) if fallback is None else fallback.to(fused)
     if fill.shape != fused.shape:
         raise ValueError(f"fallback must have shape {list(fused.shape)}, got {list(fill.shape)}")
-    return torch.where((total > 0)[:, None], fused, fill).to(block_values.dtype)
+    return torch.where((largest > 0)[:, None], fused, fill).to(block_values.dtype)
 
 
 # --------------------------------------------------------------------------- outputs

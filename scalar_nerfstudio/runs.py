@@ -22,6 +22,7 @@ from scalar_nerfstudio.atomic_io import atomic_write_text
 CONFIG_NAME = "config.yml"
 BLOCKS_JSON_NAME = "blocks.json"
 REPORT_NAME = "model_report.json"
+ASSEMBLED_FROM_NAME = "assembled_from.json"
 CHECKPOINT_PATTERN = re.compile(r"^step-(\d{9})\.ckpt$")
 PARTIAL_SUFFIX = ".ckpt.partial"
 

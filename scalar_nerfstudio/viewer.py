@@ -12,32 +12,18 @@ Both are found by nerfstudio's viewer because they are attributes of the pipelin
 
 from __future__ import annotations
 
-from typing import Callable, List, Sequence
+from typing import Any, Callable, Dict, List, Optional, Sequence
 
 import numpy as np
 from nerfstudio.viewer.viewer_elements import ViewerControl, ViewerDropdown
 
+from scalar_nerfstudio.blocks.palette import block_colour
 from scalar_nerfstudio.blocks.split import BlockSplit
 from scalar_nerfstudio.blocks.visibility import box_corners
 from scalar_nerfstudio.fusion import FUSION_MODES
 
-#: nerfstudio draws the scene at 10x the dataparser frame (viewer.VISER_NERFSTUDIO_SCALE_RATIO).
-VISER_SCALE = 10.0
-#: RGB in [0, 1] per block (tab10), cycling for K > 10; the global model is grey.
-BLOCK_PALETTE = np.array(
-    [
-        [0.122, 0.467, 0.706], [1.000, 0.498, 0.055], [0.173, 0.627, 0.173], [0.839, 0.153, 0.157],
-        [0.580, 0.404, 0.741], [0.549, 0.337, 0.294], [0.890, 0.467, 0.761], [0.737, 0.741, 0.133],
-        [0.090, 0.745, 0.812], [0.498, 0.498, 0.498],
-    ],
-    dtype=np.float32,
-)
-GLOBAL_COLOUR = (0.35, 0.35, 0.35)
-
-
-def block_colour(index: int) -> tuple:
-    """RGB in [0, 1] of block ``index`` (``-1``: the global model)."""
-    return GLOBAL_COLOUR if index < 0 else tuple(float(v) for v in BLOCK_PALETTE[index % len(BLOCK_PALETTE)])
+#: Scene node under which the overlay is drawn.
+OVERLAY_NODE = "/scalar_blocks"
 
 
 def fusion_options(num_blocks: int) -> List[str]:
@@ -67,30 +53,83 @@ def box_edges(aabb_min: Sequence[float], aabb_max: Sequence[float]) -> np.ndarra
 class BlockOverlay(ViewerControl):
     """Draws the blocks' scaled AABBs and the training cameras coloured by block into the viewer.
 
+    The scene nodes viser returns are kept, so the overlay can be hidden (:meth:`set_visible`), drawn
+    again in another style (:meth:`restyle`) or taken away (:meth:`remove`) while the viewer runs.
+
     Args:
         split: the block split (AABBs in the dataparser frame).
         camera_centres: [N, 3] training camera centres, dataparser frame.
+        line_width: width of the AABB edges (pixels).
+        point_size: size of the camera points (viewer scene units).
     """
 
-    def __init__(self, split: BlockSplit, camera_centres: np.ndarray) -> None:
+    def __init__(self, split: BlockSplit, camera_centres: np.ndarray, line_width: float = 2.0, point_size: float = 0.4) -> None:
         self.split = split
         self.camera_centres = np.asarray(camera_centres, dtype=np.float32)
+        self.line_width = line_width
+        self.point_size = point_size
+        self.visible = True
+        self.edge_handles: Dict[int, List[Any]] = {}
+        """Block index -> the scene nodes of its AABB's edges."""
+        self.camera_handle: Optional[Any] = None
+        """The scene node of the camera points."""
 
     def _setup(self, viewer) -> None:  # called by nerfstudio's Viewer once the server runs
         super()._setup(viewer)
-        scene = self.viser_server.scene
+        self.draw()
+
+    @property
+    def handles(self) -> List[Any]:
+        """Every scene node of the overlay (empty before the viewer has set it up)."""
+        edges = [handle for block in self.edge_handles.values() for handle in block]
+        return edges + ([self.camera_handle] if self.camera_handle is not None else [])
+
+    def camera_owners(self) -> np.ndarray:
+        """[N] the block whose colour each training camera takes (its first block; -1: none)."""
         owner = np.full(len(self.camera_centres), -1)
         for block in reversed(self.split.blocks):
             owner[list(block.image_indices)] = block.index
+        return owner
+
+    def draw(self) -> None:
+        """(Re)draw the overlay into the viewer's scene, in the current style and visibility."""
+        from nerfstudio.viewer.viewer import VISER_NERFSTUDIO_SCALE_RATIO  # loaded with the viewer that calls _setup
+
+        self.remove()
+        scene = self.viser_server.scene
         for block in self.split.blocks:
             colour = tuple(int(255 * c) for c in block_colour(block.index))
-            for e, (start, end) in enumerate(box_edges(block.aabb_min, block.aabb_max)):
+            self.edge_handles[block.index] = [
                 scene.add_spline_catmull_rom(
-                    f"/scalar_blocks/block_{block.index}/edge_{e}",
-                    positions=(tuple(start * VISER_SCALE), tuple(end * VISER_SCALE)),
-                    color=colour, line_width=2.0,
+                    f"{OVERLAY_NODE}/block_{block.index}/edge_{e}",
+                    positions=(tuple(start * VISER_NERFSTUDIO_SCALE_RATIO), tuple(end * VISER_NERFSTUDIO_SCALE_RATIO)),
+                    color=colour, line_width=self.line_width, visible=self.visible,
                 )
-        colours = np.stack([block_colour(int(o)) for o in owner]).astype(np.float32)
-        scene.add_point_cloud(
-            "/scalar_blocks/cameras", points=self.camera_centres * VISER_SCALE, colors=colours, point_size=0.4, point_shape="circle"
+                for e, (start, end) in enumerate(box_edges(block.aabb_min, block.aabb_max))
+            ]
+        colours = np.stack([block_colour(int(o)) for o in self.camera_owners()]).astype(np.float32)
+        self.camera_handle = scene.add_point_cloud(
+            f"{OVERLAY_NODE}/cameras", points=self.camera_centres * VISER_NERFSTUDIO_SCALE_RATIO, colors=colours,
+            point_size=self.point_size, point_shape="circle", visible=self.visible,
         )
+
+    def set_visible(self, visible: bool) -> None:
+        """Show or hide the whole overlay (kept for later; nothing is drawn again)."""
+        self.visible = bool(visible)
+        for handle in self.handles:
+            handle.visible = self.visible
+
+    def restyle(self, line_width: Optional[float] = None, point_size: Optional[float] = None) -> None:
+        """Change the edges' width and the camera points' size; drawn again at once if the viewer runs."""
+        if line_width is not None:
+            self.line_width = line_width
+        if point_size is not None:
+            self.point_size = point_size
+        if self.handles:
+            self.draw()
+
+    def remove(self) -> None:
+        """Take the overlay out of the viewer's scene (:meth:`draw` puts it back)."""
+        for handle in self.handles:
+            handle.remove()
+        self.edge_handles, self.camera_handle = {}, None

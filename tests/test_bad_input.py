@@ -141,6 +141,24 @@ def _frame_without_mask(scene: Path) -> None:
     _write(scene, content)
 
 
+def _unknown_camera_model(scene: Path) -> None:
+    content = _transforms(scene)
+    content["camera_model"] = "PINHOLE_FANCY"
+    _write(scene, content)
+
+
+def _bad_last_row(scene: Path) -> None:
+    content = _transforms(scene)
+    content["frames"][1]["transform_matrix"][3] = [0, 0, 0, 0]
+    _write(scene, content)
+
+
+def _val_list_missing(scene: Path) -> None:  # nerfstudio: "The dataset's list of filenames for split val is missing."
+    content = _transforms(scene)
+    content["train_filenames"] = [frame["file_path"] for frame in content["frames"][:4]]
+    _write(scene, content)
+
+
 #: name -> (what breaks the good scene, a fragment of the message naming the culprit)
 CASES: Dict[str, Tuple[Callable[[Path], None], str]] = {
     "missing image": (_missing_image, "does not exist"),
@@ -158,11 +176,14 @@ CASES: Dict[str, Tuple[Callable[[Path], None], str]] = {
     "float image": (_float_image, "frame 5 (images/frame_00005.tif): the image"),
     "no height": (_no_height, "has no \"h\""),
     "mask for some frames": (_frame_without_mask, "frame 0 (images/frame_00000.png) has none"),
+    "unknown camera model": (_unknown_camera_model, "'PINHOLE_FANCY' is not a camera model nerfstudio knows"),
+    "bad last pose row": (_bad_last_row, "frame 1 (images/frame_00001.png) has the last transform_matrix row [0.0, 0.0, 0.0, 0.0]"),
+    "val list missing": (_val_list_missing, "has train_filenames but no \"val_filenames\" list"),
 }
 
 #: More of each message, checked in the unit test.
 DETAILS = {
-    "image size differs from w/h": "is 64x48 pixels, but transforms.json gives its top-level w=32, h=24",
+    "image size differs from w/h": "is 64x48 pixels, but transforms.json gives w=32, h=24 (at its top level)",
     "truncated jpeg": "image file is truncated",
     "float image": "PIL mode 'F'",
     "3x4 and 4x4 poses": "needs a 4x4 camera-to-world matrix in every frame",
@@ -202,6 +223,16 @@ def test_empty_eval_split_in_other_modes(good_scene: Path, mode: str, message: s
     fraction = 1.0 if mode == "fraction" else 0.9  # fraction 1.0 puts every image in training
     with pytest.raises(SceneError, match=message):
         check_scene(good_scene, eval_mode=mode, train_fraction=fraction)
+
+
+def test_split_lists_give_the_training_count(good_scene: Path, tmp_path: Path) -> None:
+    def lists(scene: Path) -> None:
+        _val_list_missing(scene)
+        content = _transforms(scene)
+        content["val_filenames"] = [frame["file_path"] for frame in content["frames"][4:]]
+        _write(scene, content)
+
+    assert scan_scene(_broken(good_scene, tmp_path, lists), eval_interval=8).num_train == 4
 
 
 def test_truncated_image_fails_in_nerfstudio_but_passes_pil_verify(good_scene: Path, tmp_path: Path) -> None:
@@ -268,6 +299,25 @@ def test_downscaled_image_of_the_wrong_size(good_scene: Path, tmp_path: Path) ->
     assert scan_scene(scene, eval_interval=8, downscale_factor=1).downscale_factor == 1  # full size is fine
 
 
+def test_automatic_downscale_reads_images_2(good_scene: Path, tmp_path: Path) -> None:
+    """Without --downscale-factor, nerfstudio halves images over 1600 pixels when images_2/ exists: so does the check."""
+    def wide(scene: Path) -> None:
+        content = _transforms(scene)
+        content.update(w=1700, h=20, cx=850, cy=10)
+        _write(scene, content)
+        for frame in content["frames"]:
+            Image.new("RGB", (1700, 20)).save(scene / frame["file_path"])
+        _with_images_2(scene, size=(850, 11))
+
+    scene = _broken(good_scene, tmp_path, wide)
+    with pytest.raises(SceneError, match=r"downscale 2 loads .*images_2/frame_00001.png, which is 850x11 pixels"):
+        scan_scene(scene, eval_interval=8)
+    Image.new("RGB", (850, 10)).save(scene / "images_2" / "frame_00001.png")
+    assert scan_scene(scene, eval_interval=8).downscale_factor == 2
+    shutil.rmtree(scene / "images_2")
+    assert scan_scene(scene, eval_interval=8).downscale_factor == 1
+
+
 def test_per_frame_sizes(good_scene: Path, tmp_path: Path) -> None:
     """Frame-level w/h are compared when there are no top-level ones (a top-level value wins, as in nerfstudio)."""
     def per_frame(scene: Path) -> None:
@@ -279,7 +329,7 @@ def test_per_frame_sizes(good_scene: Path, tmp_path: Path) -> None:
         _write(scene, content)
 
     scene = _broken(good_scene, tmp_path, per_frame)
-    with pytest.raises(SceneError, match=r"frame 2 \(images/frame_00002.png\): the image .* is 32x24 pixels, but transforms.json gives frame 2's w=30, h=24"):
+    with pytest.raises(SceneError, match=r"frame 2 \(images/frame_00002.png\): the image .* is 32x24 pixels, but transforms.json gives w=30, h=24 \(for frame 2\)"):
         scan_scene(scene, eval_interval=8)
 
 

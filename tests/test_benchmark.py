@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import subprocess
+import time
 from pathlib import Path
 
 import pytest
@@ -80,3 +81,30 @@ def test_pareto_front() -> None:
     ]
     assert [_on_front(r, rows, "parameters") for r in rows] == [True, True, False]
     assert [_on_front(r, rows, "train_s") for r in rows] == [False, True, False]
+
+
+def test_timing_helpers_time_steps_and_calls() -> None:
+    """The one timing helper every benchmark uses (engine/timing.py): steps of a trainer, and calls."""
+    from scalar_nerfstudio.engine.timing import median_seconds, time_train_iterations
+
+    class Trainer:
+        stop_training = False
+
+        def train_iteration(self, step: int) -> int:
+            time.sleep(0.01)
+            return 2 * step
+
+    trainer, seen = Trainer(), []
+
+    def after_step(step: int, result: int, clock) -> None:
+        time.sleep(0.02)  # outside the timed span: counted in wall_s only
+        seen.append((step, result, clock.steps))
+        trainer.stop_training = clock.steps >= 3
+
+    clock = time_train_iterations(trainer, after_step)
+    assert [trainer.train_iteration(step) for step in range(3)] == [0, 2, 4]
+    assert seen == [(0, 0, 1), (1, 2, 2), (2, 4, 3)] and trainer.stop_training
+    assert clock.steps == 3 and 0.03 <= clock.busy_s < clock.wall_s
+    calls = []
+    assert median_seconds(lambda: calls.append(time.sleep(0.001)), repeats=3, warmup=2) >= 0.001
+    assert len(calls) == 5

@@ -262,14 +262,14 @@ def test_block_run_takes_unset_block_settings_from_the_global_run(full_run: Path
 
     config = copy.deepcopy(scalar_nerf_block.config)
     config.global_run = full_run
-    config._adopt_global_run()
+    config.adopt_global_run()
     assert config.pipeline.block_steps == BLOCK_STEPS
     assert config.pipeline.datamanager.train_num_rays_per_batch == 512
     explicit = copy.deepcopy(scalar_nerf_block.config)
     explicit.global_run = full_run
     explicit.pipeline.block_steps = 7
     explicit.pipeline.decoder_mode = "frozen"
-    explicit._adopt_global_run()
+    explicit.adopt_global_run()
     assert explicit.pipeline.block_steps == 7 and explicit.pipeline.decoder_mode == "frozen"
 
 

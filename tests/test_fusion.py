@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
 
 import pytest
@@ -192,6 +193,52 @@ def test_nearest_block() -> None:
         nearest_block(torch.zeros(2), CENTRES)
     with pytest.raises(ValueError, match="finite"):
         nearest_block(torch.tensor([NAN, 0.0, 0.0]), CENTRES)
+
+
+@contextlib.contextmanager
+def _float64_ops():
+    """Collects the names of the torch ops run inside that produce a float64 tensor."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    found: list = []
+
+    class Recorder(TorchDispatchMode):
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            out = func(*args, **(kwargs or {}))
+            if any(isinstance(t, torch.Tensor) and t.dtype == torch.float64 for t in (out if isinstance(out, (tuple, list)) else [out])):
+                found.append(str(func))
+            return out
+
+    with Recorder():
+        yield found
+
+
+@pytest.mark.parametrize("gamma", [0.0, 1.0, 4.0, 200.0])
+@pytest.mark.parametrize("scale", [1e-30, 1e-3, 1.0, 1e6, 1e30])
+def test_float32_stays_float32_and_matches_float64_on_extreme_inputs(gamma: float, scale: float) -> None:
+    """float32 in, float32 out (no silent float64: slow on consumer GPUs, missing on MPS), and the same
+    weights and fused values as the float64 computation of the same inputs, for tiny and huge scenes
+    (squared distances under- or overflow float32 at these scales) and steep exponents."""
+    gen = torch.Generator().manual_seed(5)
+    centres = (CENTRES + 0.1 * torch.rand(3, 3, generator=gen)) * scale
+    origins = torch.cat([centres[1:2] + scale * 1e-3, torch.rand(63, 3, generator=gen) * 10 * scale])
+    values = torch.rand(3, 64, 4, generator=gen) * 1e30
+    values[0, 5] = NAN
+    valid = torch.rand(3, 64, generator=gen) > 0.2
+    with _float64_ops() as promoted:
+        weights = idw_weights(origins, centres, gamma, valid)
+        fused = fuse_weighted(values, weights)
+        nearest = nearest_block(origins, centres, valid)
+    assert not promoted, f"float64 computed from float32 inputs: {sorted(set(promoted))}"
+    assert fused.dtype == torch.float32 and nearest.dtype == torch.int64
+    expected = idw_weights(origins.double(), centres.double(), gamma, valid)
+    assert weights.dtype == torch.float32 and expected.dtype == torch.float64
+    torch.testing.assert_close(weights.double(), expected, rtol=1e-4, atol=1e-6)
+    for raw_weights in (weights, torch.rand(3, 64, generator=gen) * 1e-40, torch.rand(3, 64, generator=gen) * 1e37):
+        fused = fuse_weighted(values, raw_weights)
+        assert fused.dtype == torch.float32
+        torch.testing.assert_close(fused.double(), fuse_weighted(values.double(), raw_weights.double()), rtol=1e-5, atol=0.0, equal_nan=True)
+    assert torch.equal(nearest, nearest_block(origins.double(), centres.double(), valid))
 
 
 # --------------------------------------------------------------------------- modes

@@ -22,8 +22,8 @@ from scalar_nerfstudio.encodings import (
     hash_encoding_torch,
     level_corners,
     level_row_counts,
-    reference_hash_encoding,
 )
+from scalar_nerfstudio.encodings._reference import reference_hash_encoding
 from scalar_nerfstudio.encodings.hash_grid import sanitise_positions
 
 Encode = Callable[[Tensor, Tensor, GridLayout], Tensor]

@@ -141,6 +141,41 @@ def test_depth_of_a_known_wall() -> None:
     np.testing.assert_allclose(hits.depth, t_ground, rtol=1e-12)
 
 
+def test_intersection_matches_brute_force() -> None:
+    """The cell-culled ray cast equals a plain slab test against every box and the ground, for
+    street-level rays, rays from above the roofs (aerial views) and rays from outside the town."""
+    town = build_town(TownConfig(num_images=300, width=16, height=12, blocks_x=3, blocks_y=2, seed=5))
+    rng = np.random.default_rng(1)
+    street = town_camera_poses(town)[:, :3, 3]
+    aerial = np.column_stack([rng.uniform(-120, 120, 300), rng.uniform(-100, 100, 300), rng.uniform(60, 150, 300)])
+    outside = np.column_stack([rng.uniform(-300, 300, 300), np.full(300, -250.0), rng.uniform(1, 40, 300)])
+    repeat = 8
+    origins = np.concatenate([street, aerial, outside]).repeat(repeat, axis=0)
+    directions = rng.normal(size=(len(origins), 3))
+    n = len(street) * repeat
+    directions[:n, 2] = np.abs(directions[:n, 2]) * 0.3 * np.sign(rng.normal(size=n))  # near the horizon
+    directions[n : 2 * n, 2] = -np.abs(directions[n : 2 * n, 2])  # aerial views look down
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    # Chunks of one origin (as for an image) and chunks mixing origins far apart.
+    hits = intersect_town(origins, directions, town, chunk_rays=repeat)
+    mixed = intersect_town(origins, directions, town, chunk_rays=1000)
+    np.testing.assert_array_equal(hits.depth, mixed.depth)
+    np.testing.assert_array_equal(hits.surface, mixed.surface)
+
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t0 = (town.lo[None] - origins[:, None]) / directions[:, None]
+        t1 = (town.hi[None] - origins[:, None]) / directions[:, None]
+        near = np.nanmax(np.minimum(t0, t1), axis=2)
+        far = np.nanmin(np.maximum(t0, t1), axis=2)
+        t_box = np.where((far >= near) & (near > 1e-6), near, np.inf)
+        t_ground = np.where(directions[:, 2] < 0, -origins[:, 2] / directions[:, 2], np.inf)
+    expected = np.minimum(t_box.min(axis=1), t_ground)
+    np.testing.assert_allclose(hits.depth, expected, rtol=1e-9)
+    building = np.isfinite(expected) & (t_box.min(axis=1) < t_ground)
+    np.testing.assert_array_equal(hits.surface[building], t_box.argmin(axis=1)[building])
+    assert building.sum() > 1000 and (hits.surface == GROUND).sum() > 1000 and (~np.isfinite(hits.depth)).sum() > 100
+
+
 def test_texture_is_multi_view_consistent() -> None:
     """The colour of a surface point does not depend on where it is seen from."""
     town = build_town(TownConfig(num_images=4, width=16, height=12, blocks_x=2, blocks_y=2, seed=1))
@@ -274,7 +309,9 @@ def test_cli_writes_a_town_and_a_courtyard(tmp_path: Path) -> None:
         (["--num-images", "many"], "--num-images"),
         (["--blocks-x", "0"], "--blocks-x"),
         (["--extent", "100", "--blocks-x", "2"], "--extent"),
-        (["--street-width", "5"], "road_width"),
+        (["--street-width", "3"], "--road-width"),
+        (["--road-width", "13"], "--road-width"),
+        (["--fov", "175"], "--fov"),
         (["--scene", "courtyard", "--blocks-x", "2"], "only for --scene town"),
         (["NON_EMPTY"], "not empty"),
         (["A_FILE"], "not a folder"),

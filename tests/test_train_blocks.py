@@ -22,10 +22,11 @@ import yaml
 from conftest import TINY, ns_eval, ns_train_command, run_dirs
 from scalar_nerfstudio.blocks.split import save_blocks_json, split_cameras
 from scalar_nerfstudio.runs import latest_checkpoint_step
+from scalar_nerfstudio.distributed.executors import LocalExecutor, thread_env
+from scalar_nerfstudio.distributed.run_folders import DONE_MARKER, GlobalRun, prepare_blocks, write_done
+from scalar_nerfstudio.distributed.scheduling import block_command, default_cpus_per_block
 from scalar_nerfstudio.scripts import train_blocks
-from scalar_nerfstudio.scripts.train_blocks import (
-    DONE_MARKER, GlobalRun, LocalExecutor, block_command, default_cpus_per_block, main, prepare_blocks, thread_env, write_done,
-)
+from scalar_nerfstudio.scripts.train_blocks import main
 
 BLOCK_STEPS = 8  # per block in these tests: the time goes into starting the processes, not training
 

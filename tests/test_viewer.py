@@ -16,7 +16,9 @@ import torch
 
 from conftest import NUM_BLOCKS, free_port
 from scalar_nerfstudio.blocks.visibility import aabb_in_frustum
-from scalar_nerfstudio.viewer import box_edges, fusion_options
+from scalar_nerfstudio.blocks.palette import BLOCK_PALETTE, block_colour
+from scalar_nerfstudio.blocks.split import split_cameras
+from scalar_nerfstudio.viewer import BlockOverlay, box_edges, fusion_options
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 CHROMEDRIVER = shutil.which("chromedriver")
@@ -34,6 +36,57 @@ def test_box_edges_are_the_twelve_unit_edges() -> None:
     assert edges.shape == (12, 2, 3)
     lengths = sorted(np.linalg.norm(edges[:, 1] - edges[:, 0], axis=1).round(6).tolist())
     assert lengths == [1.0] * 4 + [2.0] * 4 + [3.0] * 4
+
+
+class _FakeNode:
+    def __init__(self, name: str, kwargs: dict) -> None:
+        self.name, self.kwargs, self.visible, self.removed = name, kwargs, kwargs.get("visible", True), False
+
+    def remove(self) -> None:
+        self.removed = True
+
+
+class _FakeScene:
+    """viser's scene API as the overlay uses it: every add_* returns a node handle."""
+
+    def __init__(self) -> None:
+        self.nodes: list = []
+
+    def _add(self, name: str, **kwargs) -> _FakeNode:
+        self.nodes.append(_FakeNode(name, kwargs))
+        return self.nodes[-1]
+
+    add_spline_catmull_rom = add_point_cloud = _add
+
+
+class _FakeViewer:
+    def __init__(self) -> None:
+        self.viser_server = type("Server", (), {"scene": _FakeScene()})()
+
+
+def test_block_overlay_keeps_its_scene_nodes_to_hide_restyle_and_remove() -> None:
+    from nerfstudio.viewer.viewer import VISER_NERFSTUDIO_SCALE_RATIO
+
+    centres = np.stack([np.linspace(-1, 1, 8), np.zeros(8), np.zeros(8)], axis=1)
+    overlay = BlockOverlay(split_cameras(centres, 2, (1.2, 1.2, 1.2)), centres)
+    assert overlay.handles == []
+    overlay.set_visible(False)  # before the viewer runs: remembered for the drawing
+    viewer = _FakeViewer()
+    overlay._setup(viewer)
+    nodes = list(viewer.viser_server.scene.nodes)
+    assert len(nodes) == 2 * 12 + 1 and overlay.handles == nodes
+    assert not any(node.visible for node in nodes)
+    cameras = overlay.camera_handle
+    assert np.allclose(cameras.kwargs["points"], centres * VISER_NERFSTUDIO_SCALE_RATIO)
+    assert tuple(cameras.kwargs["colors"][0]) == pytest.approx(block_colour(0)) and block_colour(1) == tuple(BLOCK_PALETTE[1].tolist())
+    overlay.set_visible(True)
+    assert all(node.visible for node in nodes)
+    overlay.restyle(line_width=5.0)
+    assert all(node.removed for node in nodes), "the old nodes are replaced"
+    assert {h.kwargs["line_width"] for block in overlay.edge_handles.values() for h in block} == {5.0}
+    drawn = overlay.handles
+    overlay.remove()
+    assert overlay.handles == [] and all(node.removed for node in drawn)
 
 
 def _camera_looking_down_minus_z() -> np.ndarray:

@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Sequence, Tuple
+from typing import Tuple
 
 import numpy as np
 
@@ -150,17 +150,3 @@ def block_capacity(
     log2_size = min(max(math.ceil(math.log2(cells)), low), high)
     resolution = min(max(int(math.ceil(2.0 * pixels)), res_low), res_high)
     return BlockCapacity(log2_hashmap_size=log2_size, max_resolution=resolution)
-
-
-def block_capacities(
-    scale: LayoutScale,
-    block_extents: Sequence[float],
-    block_pixels: Sequence[int],
-    log2_hashmap_bounds: Tuple[int, int],
-    max_resolution_bounds: Tuple[int, int],
-) -> Tuple[BlockCapacity, ...]:
-    """:func:`block_capacity` of every block."""
-    return tuple(
-        block_capacity(scale, extent, pixels, log2_hashmap_bounds, max_resolution_bounds)
-        for extent, pixels in zip(block_extents, block_pixels)
-    )

@@ -81,6 +81,10 @@ class ScalarDataManagerConfig(VanillaDataManagerConfig):
     """nerfstudio's VanillaDataManager, optionally over a subset of the training images."""
 
     _target: Type = field(default_factory=lambda: ScalarDataManager)
+    train_num_rays_per_batch: int = 4096
+    """Rays per training step."""
+    eval_num_rays_per_batch: int = 4096
+    """Rays per evaluation batch."""
     image_subset: Optional[Tuple[int, ...]] = None
     """Indices of the training images to load (None: all). Set by the pipeline for a block."""
     alpha_background: Tuple[float, float, float] = (1.0, 1.0, 1.0)

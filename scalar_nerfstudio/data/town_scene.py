@@ -7,8 +7,8 @@ ends at a facade. Street-level cameras (1.5-2 m high) walk the streets (a Block-
 capture) and look along the streets and sideways at the facades.
 
 Everything is ray-cast with numpy: rays against the ground plane and against the buildings (a slab
-test vectorised over boxes, the boxes grouped by city block so that a ray only tests the blocks
-whose bounding box it enters before its current hit). The texture is a pure function of the 3-D
+test vectorised over boxes; the boxes are grouped by city block, the blocks taken nearest first,
+and a ray only tests a block whose bounding box it enters before its current hit). The texture is a pure function of the 3-D
 hit point and of the surface it lies on (building, face), so every view agrees (multi-view
 consistent) and the lighting is fixed (Lambertian, a sun that does not move). It has detail at
 several scales, from asphalt speckle (4 cm), bricks (7.5 x 22.5 cm), pavement tiles and sign
@@ -37,6 +37,7 @@ from __future__ import annotations
 import ctypes
 import json
 import math
+import multiprocessing
 import sys
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, fields
@@ -73,6 +74,9 @@ GENERATOR_VERSION = 1
 DEPTH_PNG_UNIT_M = 1e-3
 #: The largest depth a 16-bit PNG in millimetres holds; farther points are written as 0 (unknown).
 DEPTH_PNG_MAX_M = 65535 * DEPTH_PNG_UNIT_M
+
+#: Rays cast at once: bounds the temporaries ([rays, boxes of a cell] at most 2^18 entries).
+_CHUNK_RAYS = 16384
 
 # Ids of the two surfaces that are no building, in TownHits.surface.
 GROUND = -1
@@ -475,8 +479,7 @@ def intersect_town(origins: np.ndarray, directions: np.ndarray, town: Town, chun
             building does not see that building).
         directions: [N, 3] ray directions (normalised here; depth is along the unit direction).
         town: the town.
-        chunk_rays: rays per chunk (memory bound); default: about 2^18 ray-cell pairs (small
-            temporaries stay in the allocator's heap: no page-fault cost).
+        chunk_rays: rays per chunk (bounds the memory; default 16384).
         min_t: hits closer than this are ignored.
     """
     origins = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
@@ -488,8 +491,7 @@ def intersect_town(origins: np.ndarray, directions: np.ndarray, town: Town, chun
         raise ValueError("intersect_town: ray origins and directions must be finite, directions non-zero")
     directions = directions / norms
     n = len(origins)
-    num_cells = len(town.cell_lo)
-    chunk = chunk_rays or max(1024, (1 << 18) // max(num_cells, 1))
+    chunk = chunk_rays or _CHUNK_RAYS
     depth = np.full(n, np.inf)
     surface = np.full(n, SKY, dtype=np.int64)
     axis = np.full(n, -1, dtype=np.int64)
@@ -502,15 +504,24 @@ def intersect_town(origins: np.ndarray, directions: np.ndarray, town: Town, chun
         t = t_ground
         s = np.where(np.isfinite(t_ground), GROUND, SKY)
         a = np.where(np.isfinite(t_ground), 2, -1)
-        cell_near, cell_far = _slab(o, inv, town.cell_lo, town.cell_hi)
-        cell_near = np.maximum(cell_near, 0.0)
-        cell_entered = cell_far >= cell_near
-        # Nearest cells first (from the chunk's mean origin: exact for one camera's rays), so that
-        # rays stopped by a near building skip the cells behind it.
+        # Cells nearest to the chunk's mean origin first (for one camera's rays: exact front-to-back
+        # order). A cell is only tested against rays that can still reach it: not stopped before
+        # the lower bound of their distance to it, nor above every building.
         centre = o.mean(axis=0)
-        gap = np.maximum(np.maximum(town.cell_lo - centre, centre - town.cell_hi), 0.0)
-        for c in np.argsort(np.linalg.norm(gap, axis=1), kind="stable"):
-            rays = np.flatnonzero(cell_entered[:, c] & (cell_near[:, c] < t))
+        spread = float(np.linalg.norm(o - centre, axis=1).max())
+        gap = np.linalg.norm(np.maximum(np.maximum(town.cell_lo - centre, centre - town.cell_hi), 0.0), axis=1)
+        top = float(town.cell_hi[:, 2].max())
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t_top = np.where(d[:, 2] > 1e-12, (top - o[:, 2]) / d[:, 2], np.inf)  # < 0: above every building, going up
+        for c in np.argsort(gap, kind="stable"):
+            bound = gap[c] - spread
+            reach = np.minimum(t, t_top)
+            if bound >= reach.max():
+                break
+            active = np.flatnonzero(reach > bound)
+            near, far = _slab(o[active], inv[active], town.cell_lo[c : c + 1], town.cell_hi[c : c + 1])
+            near = np.maximum(near[:, 0], 0.0)
+            rays = active[(far[:, 0] >= near) & (near < t[active])]
             if len(rays) == 0:
                 continue
             b0, b1 = int(town.cell_start[c]), int(town.cell_start[c + 1])
@@ -808,7 +819,7 @@ def render_town_rays(origins: np.ndarray, directions: np.ndarray, town: Town) ->
     rgb = np.empty_like(origins)
     depth = np.empty(len(origins))
     # Chunks of a few thousand rays keep every temporary small (cache-friendly, no page faults).
-    chunk = max(1024, (1 << 18) // max(len(town.cell_lo), 1))
+    chunk = _CHUNK_RAYS
     for start in range(0, len(origins), chunk):
         o, d = origins[start : start + chunk], directions[start : start + chunk]
         hits = intersect_town(o, d, town, chunk_rays=chunk)
@@ -929,14 +940,15 @@ def render_town_image(town: Town, camera_to_world: np.ndarray, supersample: Opti
     cos = 1.0 / np.linalg.norm(centre, axis=1)
     directions = centre @ c2w[:3, :3].T
     origins = np.broadcast_to(c2w[:3, 3], directions.shape)
-    rgb, depth = render_town_rays(origins, directions, town)
-    if ss > 1:
+    if ss == 1:
+        rgb, depth = render_town_rays(origins, directions, town)
+    else:
+        depth = intersect_town(origins, directions, town).depth
         offsets = [((a + 0.5) / ss, (b + 0.5) / ss) for b in range(ss) for a in range(ss)]
-        total = np.zeros_like(rgb)
+        rgb = np.zeros_like(directions)
         for sub in _pixel_directions(config, offsets):
-            sub_rgb, _ = render_town_rays(origins, sub @ c2w[:3, :3].T, town)
-            total += sub_rgb
-        rgb = total / len(offsets)
+            rgb += render_town_rays(origins, sub @ c2w[:3, :3].T, town)[0]
+        rgb /= len(offsets)
     shape = (config.height, config.width)
     return rgb.reshape(*shape, 3), depth.reshape(shape), (depth * cos).reshape(shape)
 
@@ -1123,7 +1135,9 @@ def write_town(out_dir: Path, config: Optional[TownConfig] = None, progress: boo
             for batch in batches:
                 bar.advance(_write_frames(town, out_dir, poses, names, batch))
         else:
-            with ProcessPoolExecutor(max_workers=workers, initializer=_worker_init, initargs=(config.to_json(),)) as pool:
+            # spawn, not fork: the caller may hold threads (torch, a viewer) that a fork would copy mid-lock.
+            context = multiprocessing.get_context("spawn")
+            with ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=_worker_init, initargs=(config.to_json(),)) as pool:
                 for done in pool.map(_worker_frames, [str(out_dir)] * len(batches), batches):
                     bar.advance(done)
     finally:

@@ -24,7 +24,7 @@ from concurrent.futures import ThreadPoolExecutor
 from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Dict, Iterable, List, Optional, Sequence, Tuple, Union
+from typing import Any, Callable, Dict, Iterable, List, Optional, Sequence, Tuple, Union, cast
 
 import numpy as np
 from PIL import Image, UnidentifiedImageError
@@ -182,11 +182,16 @@ def _pose(path: Path, index: int, frame: Dict[str, Any]) -> np.ndarray:
     """The frame's 4x4 camera-to-world matrix (nerfstudio-data multiplies 4x4 poses; 3x4 ones fail there)."""
     matrix = frame.get("transform_matrix")
     name = _frame_name(index, frame)
-    rows = len(matrix) if isinstance(matrix, list) else 0
-    if rows != 4 or any(not isinstance(r, list) or len(r) != 4 for r in matrix):
-        shape = f"{rows}x{len(matrix[0])}" if rows and isinstance(matrix[0], list) else "no"
+    if not isinstance(matrix, list) or len(matrix) != 4 or any(not isinstance(r, list) or len(r) != 4 for r in matrix):
+        widths = {len(r) for r in matrix if isinstance(r, list)} if isinstance(matrix, list) else set()
+        if matrix is None:
+            shape = "has no"
+        elif isinstance(matrix, list) and matrix and len(widths) == 1 and all(isinstance(r, list) for r in matrix):
+            shape = f"has a {len(matrix)}x{widths.pop()}"
+        else:
+            shape = "has a malformed"
         raise SceneError(
-            f"{path}: {name} has a {shape} \"transform_matrix\"; nerfstudio-data needs a 4x4 camera-to-world "
+            f"{path}: {name} {shape} \"transform_matrix\"; nerfstudio-data needs a 4x4 camera-to-world "
             f"matrix in every frame (give a 3x4 pose the fourth row [0, 0, 0, 1])."
         )
     values = [_number(v) for row in matrix for v in row]
@@ -318,7 +323,7 @@ def decode_image(path: Path) -> Union[ImageInfo, str]:
             image.load()  # decodes every pixel: a truncated or corrupt file fails here, not in training
             has_alpha = image.mode in _WITH_ALPHA or (image.mode == "P" and "transparency" in image.info)
             if image.mode == "I":
-                low, high = image.getextrema()
+                low, high = cast(Tuple[float, float], image.getextrema())
                 if low < 0 or high > 65535:
                     return f"its 32-bit pixel values ({low}..{high}) are not a 16-bit image"
             return ImageInfo(mode=image.mode, size=image.size, has_alpha=has_alpha)
@@ -384,16 +389,16 @@ def _check_images(path: Path, root: Path, frames: List[Dict[str, Any]], intrinsi
         width, height = intrinsics[index]["w"], intrinsics[index]["h"]
         expected = _expected_size(width, height, factor)
         if tuple(result.size) != expected:
-            where = "its top-level" if "w" in meta or "h" in meta else f"frame {index}'s"
+            where = "at its top level" if "w" in meta and "h" in meta else f"for frame {index}"
             got = f"{result.size[0]}x{result.size[1]}"
             if factor == 1:
                 raise SceneError(
-                    f"{path}: {name}: the image {image} is {got} pixels, but transforms.json gives {where} w={width:g}, h={height:g}. "
+                    f"{path}: {name}: the image {image} is {got} pixels, but transforms.json gives w={width:g}, h={height:g} ({where}). "
                     f"Correct w/h (and fl_x, fl_y, cx, cy with them) or use the image at that size."
                 )
             raise SceneError(
                 f"{path}: {name}: downscale {factor} loads {image}, which is {got} pixels, but w={width:g}, h={height:g} "
-                f"({where}) divided by {factor} and rounded down is {expected[0]}x{expected[1]}. Recreate "
+                f"(transforms.json, {where}) divided by {factor} and rounded down is {expected[0]}x{expected[1]}. Recreate "
                 f"{root / f'images_{factor}'}/ at exactly 1/{factor} of the full size, or correct w/h in transforms.json."
             )
     return dict(conversions)

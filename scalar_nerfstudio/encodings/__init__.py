@@ -10,7 +10,6 @@ from scalar_nerfstudio.encodings.hash_grid import (
     hash_encoding_torch,
     level_corners,
     level_row_counts,
-    reference_hash_encoding,
 )
 
 __all__ = [
@@ -23,5 +22,4 @@ __all__ = [
     "hash_encoding_torch",
     "level_corners",
     "level_row_counts",
-    "reference_hash_encoding",
 ]

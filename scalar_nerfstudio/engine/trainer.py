@@ -17,6 +17,7 @@ from scalar_nerfstudio.blocks.split import BlockSplitError, load_blocks_json
 from scalar_nerfstudio.config_checks import OptionError, check_block_plan, check_options, check_output_dir
 from scalar_nerfstudio.data.validation import SceneError, scan_scene
 from scalar_nerfstudio.engine.contract import PhasedPipeline
+from scalar_nerfstudio.engine.device import resolve_machine
 from scalar_nerfstudio.engine.preview import write_preview
 from scalar_nerfstudio.engine.report import format_report, scene_model_report, write_report
 from scalar_nerfstudio.engine.schedulers import WarmupExponentialDecaySchedulerConfig
@@ -116,6 +117,10 @@ class ScalarTrainer(Trainer):
     """Adds to nerfstudio's Trainer: atomic checkpoints, robust resume, schedules scaled to the run."""
 
     config: ScalarTrainerConfig
+
+    def __init__(self, config: ScalarTrainerConfig, local_rank: int = 0, world_size: int = 1) -> None:
+        resolve_machine(config)  # device "auto" and mixed precision (CUDA only), before nerfstudio reads them
+        super().__init__(config, local_rank, world_size)
 
     def setup(self, test_mode: Literal["test", "val", "inference"] = "val") -> None:
         super().setup(test_mode=test_mode)
@@ -256,41 +261,50 @@ class ScalarBlockTrainerConfig(ScalarTrainerConfig):
         The run folder is named ``TIMESTAMP-blockK``, so blocks started in the same second (several
         processes at once) never share a folder.
         """
-        self._adopt_global_run()
+        try:
+            self.adopt_global_run()
+        except RunError as error:
+            raise SystemExit(f"scalar-nerf-block: {error}") from None
         fresh = self.timestamp == "{timestamp}" and self._resumed_run_dir() is None
         super().set_timestamp()
         if fresh:
             self.timestamp = f"{self.timestamp}-block{self.block}"
 
-    def _adopt_global_run(self) -> None:
+    def adopt_global_run(self) -> None:
+        """Take the scene, split, model settings and global checkpoint from ``global_run`` (``ns-train``
+        does this first; ``scalar-nerf-train-blocks`` to check a global run without training).
+
+        Raises:
+            RunError: ``global_run`` is not a scalar-nerf run whose global phase is finished (one line).
+        """
         if self.global_run is None:
-            raise SystemExit("scalar-nerf-block: --global-run is required (the folder of a trained `ns-train scalar-nerf` run).")
+            raise RunError("--global-run is required (the folder of a trained `ns-train scalar-nerf` run).")
         config_path = run_config_path(self.global_run)
         try:
             global_config = load_run_config(config_path)
         except RunError:
-            raise SystemExit(f"scalar-nerf-block: --global-run {self.global_run}: no config.yml there.") from None
+            raise RunError(f"the global run {self.global_run}: no config.yml there (not a scalar-nerf run folder).") from None
         run_dir = config_path.parent
         global_pipeline = getattr(global_config, "pipeline", None)
         if not hasattr(global_pipeline, "global_steps"):
-            raise SystemExit(f"scalar-nerf-block: {config_path} is not a scalar-nerf run.")
+            raise RunError(f"{config_path} is not a scalar-nerf run.")
         blocks_json = blocks_json_path(run_dir)
         if not blocks_json.is_file():
-            raise SystemExit(f"scalar-nerf-block: {blocks_json} is missing; was {run_dir} trained with scalar-nerf?")
+            raise RunError(f"{blocks_json} is missing; was {run_dir} trained with scalar-nerf?")
         checkpoint_dir = run_dir / global_config.relative_model_dir
         step = latest_checkpoint_step(checkpoint_dir)
         if step is None or step + 1 < global_pipeline.global_steps:
             done = 0 if step is None else step + 1
-            raise SystemExit(
-                f"scalar-nerf-block: the global phase of {run_dir} is not finished "
+            raise RunError(
+                f"the global phase of {run_dir} is not finished "
                 f"({done} of {global_pipeline.global_steps} steps checkpointed); train it first."
             )
         try:
             num_blocks = load_blocks_json(blocks_json)[0].num_blocks
         except BlockSplitError as error:
-            raise SystemExit(f"scalar-nerf-block: {error}") from None
+            raise RunError(str(error)) from None
         if not 0 <= self.block < num_blocks:
-            raise SystemExit(f"scalar-nerf-block: --block {self.block} does not exist; {blocks_json} has blocks 0..{num_blocks - 1}.")
+            raise RunError(f"--block {self.block} does not exist; {blocks_json} has blocks 0..{num_blocks - 1}.")
         pipeline = self.pipeline
         pipeline.datamanager.data = global_pipeline.datamanager.data
         pipeline.datamanager.dataparser = global_pipeline.datamanager.dataparser
@@ -300,10 +314,8 @@ class ScalarBlockTrainerConfig(ScalarTrainerConfig):
         pipeline.min_overlap_images = global_pipeline.min_overlap_images
         for name in ("block_log2_hashmap_size", "block_log2_hashmap_bounds", "block_max_resolution", "block_max_resolution_bounds"):
             setattr(pipeline, name, getattr(global_pipeline, name, getattr(pipeline, name)))
-        # Block settings left at the method's defaults follow the global run (an explicit value wins).
-        from scalar_nerfstudio.method_configs import scalar_nerf_block  # the method defaults (import cycle at module level)
-
-        defaults = scalar_nerf_block.config.pipeline
+        # Block settings left at their defaults follow the global run (an explicit value wins).
+        defaults = type(pipeline)()
         for name in ("block_steps", "decoder_mode"):
             if getattr(pipeline, name) == getattr(defaults, name):
                 setattr(pipeline, name, getattr(global_pipeline, name))

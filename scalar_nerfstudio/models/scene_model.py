@@ -33,7 +33,7 @@ from scalar_nerfstudio.fusion import (
 from scalar_nerfstudio.metrics import psnr
 from scalar_nerfstudio.model_components.rendering import normals_from_unit_interval, normals_to_unit_interval, safe_normalise
 from scalar_nerfstudio.models.scalar_model import NormalsOutput, ScalarModel, ScalarModelConfig, near_far_collider
-from scalar_nerfstudio.viewer import BLOCK_PALETTE, GLOBAL_COLOUR
+from scalar_nerfstudio.blocks.palette import BLOCK_PALETTE, GLOBAL_COLOUR
 
 DecoderMode = Literal["finetune", "frozen", "independent"]
 #: A block's region radius never drops below this (normalised scene units; cameras span [-1, 1]).

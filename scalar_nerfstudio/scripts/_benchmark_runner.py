@@ -23,7 +23,9 @@ from typing import Any, Dict, List
 
 import torch
 
+from scalar_nerfstudio.engine.device import resolve_machine
 from scalar_nerfstudio.engine.report import MIB, peak_memory_mib, tensor_bytes
+from scalar_nerfstudio.engine.timing import StepClock, time_train_iterations
 
 
 def _disable_lpips() -> None:
@@ -62,8 +64,8 @@ def trainer_config(spec: Dict[str, Any]):
 
         config = deepcopy(all_methods["nerfacto"])
         config.pipeline.model.implementation = "torch"
-        config.machine.device_type = "cuda" if torch.cuda.is_available() else "cpu"
-        config.mixed_precision = torch.cuda.is_available()
+        config.machine.device_type, config.mixed_precision = "auto", True
+        resolve_machine(config)  # nerfstudio's Trainer does not settle "auto" itself (scalar-nerf's does)
     else:
         from scalar_nerfstudio.method_configs import scalar_nerf
 
@@ -119,30 +121,22 @@ def run(spec: Dict[str, Any]) -> Dict[str, Any]:
     eval_steps = set(range(eval_every, total + 1, eval_every)) if eval_every > 0 else set()
     time_limit = float(spec.get("time_limit_s", 0.0))
     curve: List[Dict[str, float]] = []
-    clock = {"train_s": 0.0, "steps": 0}
-    iteration = trainer.train_iteration
 
-    def timed_iteration(step: int):
-        start = time.perf_counter()
-        result = iteration(step)
-        clock["train_s"] += time.perf_counter() - start
-        clock["steps"] += 1
-        done = clock["steps"]
+    def after_step(step: int, result, clock: StepClock) -> None:
         if time_limit > 0:
-            print(f"PROGRESS {min(clock['train_s'], time_limit):.0f} {time_limit:.0f}", flush=True)
+            print(f"PROGRESS {min(clock.busy_s, time_limit):.0f} {time_limit:.0f}", flush=True)
         else:
-            print(f"PROGRESS {done} {total}", flush=True)
-        out_of_time = time_limit > 0 and clock["train_s"] >= time_limit
-        if done in eval_steps or out_of_time:
-            curve.append({"step": done, "train_s": clock["train_s"], **_evaluate(pipeline)})
+            print(f"PROGRESS {clock.steps} {total}", flush=True)
+        out_of_time = time_limit > 0 and clock.busy_s >= time_limit
+        if clock.steps in eval_steps or out_of_time:
+            curve.append({"step": clock.steps, "train_s": clock.busy_s, **_evaluate(pipeline)})
         if out_of_time:
             trainer.stop_training = True
-        return result
 
-    trainer.train_iteration = timed_iteration
+    clock = time_train_iterations(trainer, after_step)
     trainer.train()
-    if spec.get("eval_at_end", True) and (not curve or curve[-1]["step"] != clock["steps"]):
-        curve.append({"step": clock["steps"], "train_s": clock["train_s"], **_evaluate(pipeline)})
+    if spec.get("eval_at_end", True) and (not curve or curve[-1]["step"] != clock.steps):
+        curve.append({"step": clock.steps, "train_s": clock.busy_s, **_evaluate(pipeline)})
     finals: Dict[str, Dict[str, float]] = {}
     fusions = spec.get("fusions") or []
     for index, mode in enumerate(fusions):
@@ -157,9 +151,9 @@ def run(spec: Dict[str, Any]) -> Dict[str, Any]:
     result = {
         "name": spec["name"],
         "method": spec["method"],
-        "steps": clock["steps"],
-        "train_s": clock["train_s"],
-        "train_rays_per_s": clock["steps"] * rays / max(clock["train_s"], 1e-9),
+        "steps": clock.steps,
+        "train_s": clock.busy_s,
+        "train_rays_per_s": clock.steps * rays / max(clock.busy_s, 1e-9),
         "curve": curve,
         "final": curve[-1] if curve else {},
         "fusions": finals,

@@ -22,6 +22,7 @@ import tyro
 from scalar_nerfstudio.atomic_io import atomic_write_text
 from scalar_nerfstudio.blocks.split import BlockSplitError, load_blocks_json
 from scalar_nerfstudio.runs import (
+    ASSEMBLED_FROM_NAME,
     BLOCKS_JSON_NAME,
     RunError,
     atomic_torch_save,
@@ -120,7 +121,7 @@ def assemble(global_run: Path, block_runs: List[Path], output_dir: Optional[Path
     atomic_torch_save({"step": state["step"], "pipeline": merged}, model_dir / checkpoint_name(state["step"]))
     save_run_config(global_config, run_dir)
     atomic_write_text(
-        run_dir / "assembled_from.json",
+        run_dir / ASSEMBLED_FROM_NAME,
         json.dumps({"global_run": str(global_dir), "blocks": {str(k): str(v) for k, v in sorted(sources.items())}}, indent=2),
     )
     return run_dir

@@ -14,12 +14,15 @@ from __future__ import annotations
 
 import argparse
 import math
+import re
 import sys
 import time
 from pathlib import Path
 from typing import List, NoReturn, Optional
 
 PROG = "scalar-nerf-make-scene"
+#: TownConfig fields whose command-line option has another name.
+_OPTION = {"fov_x_deg": "fov"}
 
 
 class _Parser(argparse.ArgumentParser):
@@ -74,6 +77,7 @@ def build_parser() -> argparse.ArgumentParser:
     town.add_argument("--extent", type=_positive_float, default=None, help="street grid of about this many metres on each side (sets --blocks-x and --blocks-y)")
     town.add_argument("--block-size", type=_positive_float, default=None, help="side of a city block in metres (default 40)")
     town.add_argument("--street-width", type=_positive_float, default=None, help="building line to building line in metres (default 14)")
+    town.add_argument("--road-width", type=_positive_float, default=None, help="asphalt width in metres (default 8, or street width - 6 for narrower streets)")
     town.add_argument("--fov", type=_positive_float, default=None, help="horizontal field of view in degrees (default 45)")
     town.add_argument("--supersample", type=_positive_int, default=None, help="colour samples per pixel along each axis (default 1)")
     town.add_argument("--workers", type=_positive_int, default=1, help="processes rendering frames at once (same output; default 1)")
@@ -106,9 +110,11 @@ def _town(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
 
     options = {}
     for key, name in (("num_images", "num_images"), ("width", "width"), ("height", "height"), ("block_size", "block_size"),
-                      ("street_width", "street_width"), ("fov", "fov_x_deg"), ("supersample", "supersample")):
+                      ("street_width", "street_width"), ("road_width", "road_width"), ("fov", "fov_x_deg"), ("supersample", "supersample")):
         if getattr(args, key) is not None:
             options[name] = getattr(args, key)
+    if args.street_width is not None and args.road_width is None:
+        options["road_width"] = max(2.0, min(TownConfig.road_width, args.street_width - 6.0))
     if args.extent is not None:
         if args.blocks_x is not None or args.blocks_y is not None:
             parser.error("--extent sets the number of blocks; give either --extent or --blocks-x/--blocks-y")
@@ -120,8 +126,9 @@ def _town(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
         options["blocks_y"] = args.blocks_y
     try:
         config = TownConfig(seed=args.seed, **options)
-    except ValueError as error:
-        parser.error(str(error))
+    except ValueError as error:  # name the command-line option, not the dataclass field
+        message = re.sub(r"TownConfig\.(\w+)", lambda m: "--" + _OPTION.get(m.group(1), m.group(1)).replace("_", "-"), str(error))
+        parser.error(message)
     _check_output(parser, args.output, args.overwrite)
     start = time.perf_counter()
     try:
@@ -158,7 +165,7 @@ def _automatic_blocks_line(config, poses) -> str:
 def _courtyard(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
     from scalar_nerfstudio.data.synthetic_scene import write_scene
 
-    town_only = [f"--{name.replace('_', '-')}" for name in ("blocks_x", "blocks_y", "extent", "block_size", "street_width", "fov", "supersample")
+    town_only = [f"--{name.replace('_', '-')}" for name in ("blocks_x", "blocks_y", "extent", "block_size", "street_width", "road_width", "fov", "supersample")
                  if getattr(args, name) is not None]
     if town_only:
         parser.error(f"{', '.join(town_only)}: only for --scene town")

@@ -1,0 +1,217 @@
+"""Running block attempts: a pool of subprocesses on this machine, or one Ray task per attempt.
+
+An attempt is one ``ns-train scalar-nerf-block ...`` process with its log in its attempt folder
+(:func:`run_attempt`). Both executors have the same three methods: ``submit(job)`` returns a handle,
+``wait(handles)`` returns ``(handle, AttemptResult)`` for at least one finished attempt, ``close()``.
+
+This module's top level imports only the standard library, so a Ray worker that runs an attempt does
+not import torch or nerfstudio itself (its ``ns-train`` subprocess does).
+"""
+
+from __future__ import annotations
+
+import importlib
+import os
+import shlex
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Dict, List, Optional, Tuple
+
+from scalar_nerfstudio.distributed import TrainBlocksError
+
+THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMEXPR_NUM_THREADS")
+INSTALL_RAY = "pip install 'scalar-nerfstudio[distributed]'"
+LOG_NAME = "train.log"
+
+
+@dataclass
+class AttemptJob:
+    block: int
+    attempt: int
+    folder: str
+    """The attempt folder (absolute; on a filesystem the worker shares)."""
+    args: List[str]
+    env: Dict[str, str]
+
+
+@dataclass
+class AttemptResult:
+    returncode: Optional[int]
+    """The ns-train process's exit status (negative: killed by that signal); None if it never ended."""
+    seconds: float
+    error: str = ""
+    host: str = ""
+
+
+def thread_env(cpus: int, gpus: float, set_devices: Optional[str] = None) -> Dict[str, str]:
+    """Environment of one block process: ``cpus`` threads for OpenMP/MKL/BLAS (torch follows OMP)."""
+    env = {name: str(cpus) for name in THREAD_VARIABLES}
+    if gpus <= 0:
+        env["CUDA_VISIBLE_DEVICES"] = ""  # train on the CPU even on a GPU node
+    elif set_devices is not None:
+        env["CUDA_VISIBLE_DEVICES"] = set_devices
+    return env
+
+
+def _die_with_parent() -> None:  # pragma: no cover - runs in the forked child
+    """In the block process: be killed when the process that started it dies (Linux)."""
+    try:
+        import ctypes
+        import signal
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    except Exception:
+        pass
+
+
+def run_attempt(job: AttemptJob) -> AttemptResult:
+    """Run one block attempt: ``ns-train scalar-nerf-block ...`` with its log in the attempt folder.
+
+    This is the body of a Ray task, so it uses the interpreter and environment of the worker it runs
+    on; the block process is killed if the worker dies.
+    """
+    import socket
+
+    folder = Path(job.folder)
+    command = [sys.executable, "-m", "nerfstudio.scripts.train", *job.args]
+    start = time.time()
+    with open(folder / LOG_NAME, "w") as log:
+        overrides = " ".join(f"{k}={shlex.quote(v)}" for k, v in sorted(job.env.items()))
+        log.write(f"# host {socket.gethostname()}, attempt {job.attempt} of block {job.block}\n# {overrides} {shlex.join(command)}\n")
+        log.flush()
+        process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, cwd=folder,
+                                   env={**os.environ, **job.env}, preexec_fn=_die_with_parent)
+        returncode = process.wait()
+    return AttemptResult(returncode, time.time() - start, host=socket.gethostname())
+
+
+def require_ray() -> None:
+    """Raise :class:`TrainBlocksError` (how to install it) when Ray cannot be imported."""
+    try:
+        importlib.import_module("ray")
+    except ImportError:
+        raise TrainBlocksError(f"--executor ray needs Ray, which is not installed: {INSTALL_RAY}") from None
+
+
+def local_gpus_available() -> bool:
+    """Whether this machine has a CUDA GPU (imports torch: only the command's own process asks)."""
+    import torch
+
+    return torch.cuda.is_available()
+
+
+class LocalExecutor:
+    """A pool of block subprocesses on this machine, ``num_cpus // cpus`` (and GPUs) at a time."""
+
+    def __init__(self, num_cpus: int, cpus: int, gpus: float) -> None:
+        import queue
+        from concurrent.futures import ThreadPoolExecutor
+
+        if gpus != int(gpus):
+            raise TrainBlocksError("--executor local: --gpus-per-block must be a whole number (fractions need --executor ray)")
+        slots = max(1, num_cpus // cpus)
+        gpu_ids: List[int] = []
+        if gpus > 0:
+            import torch
+
+            count = torch.cuda.device_count()
+            if count < gpus:
+                raise TrainBlocksError(f"--gpus-per-block {gpus:g}: this machine has {count} GPU(s)")
+            slots = min(slots, count // int(gpus))
+            gpu_ids = list(range(count))
+        self.slots = slots
+        self._free: "queue.Queue[Optional[str]]" = queue.Queue()
+        for slot in range(slots):
+            ids = gpu_ids[slot * int(gpus):(slot + 1) * int(gpus)]
+            self._free.put(",".join(map(str, ids)) if ids else None)
+        self._pool = ThreadPoolExecutor(max_workers=slots)
+        self.description = f"local pool of {slots} at a time"
+
+    def _run(self, job: AttemptJob) -> AttemptResult:
+        devices = self._free.get()
+        try:
+            if devices is not None:
+                job.env["CUDA_VISIBLE_DEVICES"] = devices
+            return run_attempt(job)
+        finally:
+            self._free.put(devices)
+
+    def submit(self, job: AttemptJob):
+        return self._pool.submit(self._run, job)
+
+    def wait(self, handles) -> List[Tuple[object, AttemptResult]]:
+        from concurrent.futures import FIRST_COMPLETED, wait
+
+        done, _ = wait(handles, return_when=FIRST_COMPLETED)
+        results = []
+        for handle in done:
+            try:
+                results.append((handle, handle.result()))
+            except Exception as error:  # the attempt could not even start
+                results.append((handle, AttemptResult(None, 0.0, error=f"{type(error).__name__}: {error}")))
+        return results
+
+    def close(self) -> None:
+        self._pool.shutdown(wait=True)
+
+
+class RayExecutor:
+    """One Ray task per block attempt, each asking for ``cpus`` CPUs and ``gpus`` GPUs."""
+
+    def __init__(self, address: Optional[str], num_cpus: Optional[int]) -> None:
+        require_ray()
+        import logging
+
+        import ray
+
+        self._ray = ray
+        try:
+            if address is None:
+                ray.init(address="local", num_cpus=num_cpus, include_dashboard=False, object_store_memory=128 << 20,
+                         log_to_driver=False, logging_level=logging.WARNING)
+            else:
+                ray.init(address=address, log_to_driver=False, logging_level=logging.WARNING)
+        except Exception as error:
+            where = "start a local Ray cluster" if address is None else f"connect to the Ray cluster at {address}"
+            raise TrainBlocksError(f"could not {where}: {str(error).splitlines()[0] if str(error) else type(error).__name__}") from None
+        resources = ray.cluster_resources()
+        nodes = [n for n in ray.nodes() if n.get("Alive")]
+        self.total_cpus = int(resources.get("CPU", 0))
+        self.total_gpus = float(resources.get("GPU", 0))
+        self.node_cpus = max((int(n["Resources"].get("CPU", 0)) for n in nodes), default=self.total_cpus)
+        kind = "local Ray cluster" if address is None else f"Ray cluster at {address}"
+        self.description = f"{kind}: {len(nodes)} node(s), {self.total_cpus} CPUs, {self.total_gpus:g} GPUs"
+        # Retries are the scheduler's loop (a fresh folder per attempt), so Ray must not re-run a task.
+        self._task = ray.remote(max_retries=0, retry_exceptions=False)(run_attempt)
+        self.cpus, self.gpus = 1, 0.0
+        self._started: Dict[object, float] = {}
+
+    def configure(self, cpus: int, gpus: float) -> None:
+        if cpus > self.node_cpus:
+            raise TrainBlocksError(f"--cpus-per-block {cpus}: no node of the Ray cluster has that many CPUs (largest: {self.node_cpus})")
+        if gpus > 0 and self.total_gpus < gpus:
+            raise TrainBlocksError(f"--gpus-per-block {gpus:g}: the Ray cluster has {self.total_gpus:g} GPU(s)")
+        self.cpus, self.gpus = cpus, gpus
+
+    def submit(self, job: AttemptJob):
+        ref = self._task.options(num_cpus=self.cpus, num_gpus=self.gpus, name=f"block{job.block}-attempt{job.attempt}").remote(job)
+        self._started[ref] = time.time()
+        return ref
+
+    def wait(self, handles) -> List[Tuple[object, AttemptResult]]:
+        ready, _ = self._ray.wait(list(handles), num_returns=1)
+        results = []
+        for ref in ready:
+            started = self._started.pop(ref, time.time())
+            try:
+                results.append((ref, self._ray.get(ref)))
+            except self._ray.exceptions.RayError as error:  # the worker died (killed, out of memory, node lost)
+                message = next((line.strip() for line in str(error).splitlines() if line.strip()), type(error).__name__)
+                results.append((ref, AttemptResult(None, time.time() - started, error=f"{type(error).__name__}: {message}")))
+        return results
+
+    def close(self) -> None:
+        self._ray.shutdown()

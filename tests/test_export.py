@@ -1,0 +1,277 @@
+"""Surface normals of the density field and ``ns-export pointcloud`` of a fused run.
+
+The fast tests check the normals on hand-made density fields whose normals are known (a half-space,
+a sphere) and that they stay finite where the gradient vanishes or is undefined; the slow test trains
+a tiny two-block run on the project's courtyard scene (known geometry) and exports its point cloud
+with nerfstudio's own ``ns-export pointcloud``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Callable, Tuple
+
+import numpy as np
+import pytest
+import torch
+from nerfstudio.cameras.cameras import Cameras, CameraType
+from torch import Tensor
+
+from conftest import ns_train_command, ray_bundle, run_dirs, small_scalar_model, tiny_trainer
+from scalar_nerfstudio.data.synthetic_scene import DEFAULT_BOXES, write_scene
+from scalar_nerfstudio.fields.scalar_field import encode_with_position_gradients
+from scalar_nerfstudio.model_components.rendering import (
+    normals_from_unit_interval,
+    normals_to_unit_interval,
+    render_normals,
+    safe_normalise,
+)
+from scalar_nerfstudio.models.scalar_model import ScalarModel
+
+DensityFn = Callable[[Tensor], Tensor]
+
+
+# ------------------------------------------------------------------------------ hand-made fields
+
+
+def _world(unit_positions: Tensor) -> Tensor:
+    """Contracted unit-cube positions -> world positions, inside the unit ball (where contraction is the identity)."""
+    return (unit_positions - 0.5) * 4.0
+
+
+def _model_with_density(density: DensityFn, **config: object) -> ScalarModel:
+    """A fresh small model (eval mode) whose density is ``density(world positions [N, 3]) -> [N]``."""
+    model = small_scalar_model(num_train_data=1, **config)
+    density_at_unit = model.field.density_at_unit
+
+    def field_density(unit_positions: Tensor) -> Tuple[Tensor, Tensor]:
+        _, geo_features = density_at_unit(unit_positions)
+        return density(_world(unit_positions)), geo_features
+
+    model.field.density_at_unit = field_density
+    return model.eval()
+
+
+def _half_space(world: Tensor) -> Tensor:
+    """Solid below z = -0.3 (a smooth step 0.02 wide): its outward normal is +z everywhere."""
+    return 400.0 * torch.sigmoid(-(world[:, 2] + 0.3) / 0.02)
+
+
+SPHERE_RADIUS = 0.4
+
+
+def _sphere(world: Tensor) -> Tensor:
+    """Solid ball of radius 0.4 at the origin (a smooth step 0.01 wide): normals point radially outwards."""
+    return 400.0 * torch.sigmoid((SPHERE_RADIUS - torch.linalg.vector_norm(world, dim=-1)) / 0.01)
+
+
+def _decoded(outputs: dict) -> Tensor:
+    assert "normals" in outputs
+    encoded = outputs["normals"]
+    assert torch.isfinite(encoded).all() and encoded.min() >= 0.0 and encoded.max() <= 1.0  # what ns-export asserts
+    normals = normals_from_unit_interval(encoded)
+    assert torch.allclose(torch.linalg.vector_norm(normals, dim=-1), torch.ones(normals.shape[0]), atol=1e-5)
+    return normals
+
+
+def _rays_down(num: int) -> Tuple[Tensor, Tensor]:
+    """Rays from z = 0.5 looking down at varied angles, all hitting z = -0.3 within the unit ball."""
+    generator = torch.Generator().manual_seed(0)
+    origins = torch.cat([(torch.rand(num, 2, generator=generator) - 0.5) * 0.6, torch.full((num, 1), 0.5)], dim=-1)
+    targets = torch.cat([(torch.rand(num, 2, generator=generator) - 0.5) * 0.6, torch.full((num, 1), -0.3)], dim=-1)
+    return origins, torch.nn.functional.normalize(targets - origins, dim=-1)
+
+
+def test_position_differentiable_encoding_matches_the_kernel_and_finite_differences() -> None:
+    model = small_scalar_model()
+    field = model.field
+    field.cpu_bfloat16 = False  # compare gradients with float32 finite differences
+    with torch.no_grad():
+        field.encoder.table.normal_(0.0, 0.5)
+    points = torch.rand(2000, 3, generator=torch.Generator().manual_seed(0))
+    assert torch.allclose(encode_with_position_gradients(field.encoder, points), field.encoder(points), atol=1e-6)
+
+    points = 0.3 + 0.4 * torch.rand(16, 3, generator=torch.Generator().manual_seed(1))
+    points.requires_grad_(True)
+    density, _ = field.density_at_unit(points)
+    (gradient,) = torch.autograd.grad(density.sum(), points)
+    step = 1e-4
+    with torch.no_grad():
+        finite = torch.stack(
+            [(field.density_at_unit(points + step * e)[0] - field.density_at_unit(points - step * e)[0]) / (2 * step) for e in torch.eye(3)],
+            dim=-1,
+        )
+    # the interpolation is linear within a cell: central differences agree unless they straddle a cell face
+    close = torch.isclose(gradient, finite, rtol=0.02, atol=1e-3 * float(finite.abs().max())).all(dim=-1)
+    assert close.float().mean() >= 0.8
+    assert field.encoder.table.grad is None  # normals never touch the table's gradient
+
+
+def test_half_space_normals_are_the_plane_normal() -> None:
+    model = _model_with_density(_half_space)
+    origins, directions = _rays_down(64)
+    with torch.no_grad():  # as ns-export renders: plain forward, outside training, under no_grad
+        outputs = model(ray_bundle(origins, directions))
+    assert (outputs["accumulation"] > 0.99).all()
+    normals = _decoded(outputs)
+    assert (normals[:, 2] > 0.9999).all(), normals[normals[:, 2] <= 0.9999]
+
+
+def test_sphere_normals_are_radial() -> None:
+    model = _model_with_density(_sphere)
+    generator = torch.Generator().manual_seed(0)
+    angles = torch.rand(64, generator=generator) * 2 * math.pi
+    origins = torch.stack([0.9 * torch.cos(angles), 0.9 * torch.sin(angles), 0.3 * (torch.rand(64, generator=generator) - 0.5)], dim=-1)
+    targets = 0.2 * (torch.rand(64, 3, generator=generator) - 0.5)  # aimed near the centre: no grazing rays
+    directions = torch.nn.functional.normalize(targets - origins, dim=-1)
+    with torch.no_grad():
+        outputs = model(ray_bundle(origins, directions))
+    assert (outputs["accumulation"] > 0.99).all()
+    normals = _decoded(outputs)
+    hits = origins + directions * outputs["depth"]
+    assert (torch.linalg.vector_norm(hits, dim=-1) - SPHERE_RADIUS).abs().max() < 0.03
+    expected = torch.nn.functional.normalize(hits, dim=-1)
+    assert (normals * expected).sum(-1).min() > 0.99
+
+
+@pytest.mark.parametrize(
+    "density",
+    [
+        lambda w: torch.full_like(w[:, 0], 50.0),  # no dependence on position at all
+        lambda w: 50.0 + 0.0 * w.sum(-1),  # depends on position, gradient exactly zero
+        lambda w: 50.0 + torch.sqrt(0.0 * w[:, 0]),  # gradient 0 * inf = NaN at every point
+        lambda w: torch.where(w[:, 2] < -0.3, 1e3, 0.0),  # a hard step: zero gradient almost everywhere
+    ],
+    ids=["constant", "zero-gradient", "nan-gradient", "hard-step"],
+)
+def test_zero_or_undefined_gradients_give_finite_normals_facing_the_camera(density: DensityFn) -> None:
+    model = _model_with_density(density)
+    origins, directions = _rays_down(32)
+    with torch.no_grad():
+        normals = _decoded(model(ray_bundle(origins, directions)))
+    assert torch.allclose(normals, -directions, atol=1e-5)
+
+
+def test_rays_with_nan_or_inf_get_finite_normals() -> None:
+    model = _model_with_density(_half_space)
+    origins = torch.tensor([[0.0, 0.0, 0.5], [math.nan, 0.0, 0.0], [0.0, 0.0, 0.5], [1e30, 0.0, 0.0]])
+    directions = torch.tensor([[0.0, 0.0, -1.0], [1.0, 0.0, 0.0], [math.inf, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    with pytest.warns(UserWarning, match="2 of 4 rays"), torch.no_grad():
+        outputs = model(ray_bundle(origins, directions))
+    normals = _decoded(outputs)
+    assert normals[0, 2] > 0.9999
+
+
+def test_safe_normalise_and_render_normals_edge_cases() -> None:
+    fallback = torch.tensor([0.0, 0.0, 1.0])
+    vectors = torch.tensor(
+        [[0.0, 0.0, 0.0], [1e-30, 0.0, 0.0], [1e30, 1e30, 0.0], [math.nan, 1.0, 0.0], [math.inf, 0.0, 0.0], [3.0, 4.0, 0.0], [-1e-9, 0.0, 0.0]]
+    )
+    unit = safe_normalise(vectors, fallback)
+    assert torch.isfinite(unit).all()
+    assert torch.allclose(torch.linalg.vector_norm(unit, dim=-1), torch.ones(len(vectors)))
+    for row in (0, 1, 3, 4):
+        assert torch.equal(unit[row], fallback)
+    assert torch.allclose(unit[2], torch.tensor([1.0, 1.0, 0.0]) / math.sqrt(2.0))
+    assert torch.allclose(unit[5], torch.tensor([0.6, 0.8, 0.0]))
+    assert torch.allclose(unit[6], torch.tensor([-1.0, 0.0, 0.0]))
+
+    weights = torch.tensor([[0.0, 0.0], [0.2, 0.6], [0.5, 0.5]])
+    sample_normals = torch.tensor([[[1.0, 0, 0], [0, 1.0, 0]], [[0, 0, 0], [0, 1.0, 0]], [[1.0, 0, 0], [-1.0, 0, 0]]])
+    ray_fallback = torch.tensor([[0.0, 0.0, 1.0]] * 3)
+    rendered = render_normals(weights, sample_normals, ray_fallback)
+    assert torch.equal(rendered[0], ray_fallback[0])  # nothing hit
+    assert torch.allclose(rendered[1], torch.tensor([0.0, 1.0, 0.0]))  # a sample without normal does not count
+    assert torch.equal(rendered[2], ray_fallback[2])  # opposite normals cancel
+    encoded = normals_to_unit_interval(rendered)
+    assert encoded.min() >= 0.0 and encoded.max() <= 1.0
+    assert torch.allclose(normals_from_unit_interval(encoded), rendered)
+
+
+# --------------------------------------------------------------------- when normals are rendered
+
+
+def _camera(width: int = 8, height: int = 6) -> Cameras:
+    pose = torch.tensor([[1.0, 0, 0, 0], [0, 1.0, 0, 0], [0, 0, 1.0, 0.5]])  # at z = 0.5 looking down (-z)
+    return Cameras(camera_to_worlds=pose[None], fx=4.0, fy=4.0, cx=width / 2, cy=height / 2, width=width, height=height, camera_type=CameraType.PERSPECTIVE)
+
+
+def test_normals_only_outside_training_and_not_for_camera_images_unless_asked() -> None:
+    model = _model_with_density(_half_space)
+    rays = ray_bundle(*_rays_down(8))
+    with torch.no_grad():
+        assert "normals" in model(rays)  # a ray batch outside training (ns-export)
+        assert "normals" not in model.get_outputs_for_camera(_camera())  # eval / ns-render / viewer: no cost
+        with model.rendering_normals("always"):
+            image = model.get_outputs_for_camera(_camera())
+        assert image["normals"].shape == (6, 8, 3) and (normals_from_unit_interval(image["normals"])[..., 2] > 0.999).all()
+        assert "normals" not in model.get_outputs_for_camera(_camera())  # the block restored the mode
+        model.render_normals = "never"
+        assert "normals" not in model(rays)
+    model.render_normals = "rays"
+    model.train()
+    assert "normals" not in model(rays)  # never in training
+    with pytest.raises(ValueError, match="render_normals"):
+        model.render_normals = "sometimes"  # type: ignore[assignment]
+    never = _model_with_density(_half_space, render_normals="never")
+    with torch.no_grad():
+        assert "normals" not in never(rays)
+
+
+def test_exporter_probe_ray_with_grad_enabled() -> None:
+    """nerfstudio's validate_pipeline: one ray, direction (1, 1, 1), float camera index, grad mode on."""
+    model = _model_with_density(_half_space)
+    rays = ray_bundle(torch.zeros(1, 3), torch.ones(1, 3))
+    rays.camera_indices = torch.zeros(1, 1)
+    outputs = model(rays)
+    assert outputs["normals"].shape == (1, 3)
+
+
+def test_rgba_image_takes_the_grey_background_out() -> None:
+    model = small_scalar_model()
+    colour = torch.tensor([[0.9, 0.2, 0.1], [0.3, 0.6, 0.8], [0.1, 0.1, 0.1]])
+    accumulation = torch.tensor([[1.0], [0.25], [0.0]])
+    rgb = colour * accumulation + (1.0 - accumulation) * 0.5  # grey background outside training
+    rgba = model.get_rgba_image({"rgb": rgb, "accumulation": accumulation})
+    assert torch.allclose(rgba[:2, :3], colour[:2], atol=1e-5)
+    assert torch.equal(rgba[:, 3:], accumulation)
+    assert torch.isfinite(rgba).all()
+
+
+# ------------------------------------------------------------------------- the fused scene model
+
+
+def test_fused_normals_follow_the_fusion(scene: Path, tmp_path: Path) -> None:
+    trainer = tiny_trainer(scene, tmp_path)
+    model = trainer.pipeline.model
+    for block in model.block_ids:
+        model.begin_block(block)
+    model.eval()
+    generator = torch.Generator().manual_seed(0)
+    origins = (torch.rand(64, 3, generator=generator) - 0.5) * 0.5
+    rays = ray_bundle(origins, torch.nn.functional.normalize(torch.randn(64, 3, generator=generator), dim=-1))
+    with torch.no_grad():
+        own = {b: model.blocks[str(b)].render_rays(rays, normals=True)["normals"] for b in model.block_ids}
+        for mode in ("global", "nearest", "block:1", "idw", "global-only"):
+            model.set_fusion(mode)
+            outputs = model(rays)
+            normals = _decoded(outputs)
+            if mode == "global-only":
+                assert torch.allclose(outputs["normals"], model.global_model.render_rays(rays, normals=True)["normals"])
+            elif mode != "idw":
+                winner = outputs["block_winner"].reshape(-1).long()
+                assert (winner >= 0).all()
+                expected = torch.stack([own[int(w)][i] for i, w in enumerate(winner)])
+                assert torch.equal(outputs["normals"], expected), mode
+            else:
+                assert torch.isfinite(normals).all()
+        assert "normals" not in model.get_outputs_for_camera(trainer.pipeline.datamanager.train_dataset.cameras[0:1])
+
+
+# ---------------------------------------------------------------------- ns-export on a trained run
