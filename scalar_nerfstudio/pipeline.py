@@ -294,6 +294,12 @@ class ScalarPipeline(VanillaPipeline):
         metrics_dict["phase"] = torch.tensor(-1.0 if phase.block is None else float(phase.block))
         return outputs, loss_dict, metrics_dict
 
+    def get_eval_loss_dict(self, step: int):
+        """nerfstudio's eval ray batch during training, rendered without the ``normals`` output (its loss
+        and metrics do not use it; ray batches outside training otherwise get it, for ``ns-export``)."""
+        with self.model.rendering_normals("never"):
+            return super().get_eval_loss_dict(step)
+
     def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
         """Before each step: update the occupancy grid of the phase's model (at its phase-local step)."""
         return [
@@ -306,7 +312,7 @@ class ScalarPipeline(VanillaPipeline):
 
     def _before_train_step(self, step: int) -> None:
         phase = self._enter_phase(step)
-        self.model.phase_model(phase.block)._update_occupancy(step - phase.start_step)
+        self.model.phase_model(phase.block).update_occupancy(step - phase.start_step)
 
     def plan_report(self) -> str:
         """The split, the automatic K, the block capacities and the phases, for the training log."""
@@ -331,18 +337,16 @@ class ScalarPipeline(VanillaPipeline):
         CONSOLE.print(format_eval_metrics(metrics, str(self.model.fusion_mode)))
         return metrics
 
-    def param_group_phases(self) -> dict:
-        """For each optimiser parameter group: (template key in ``optimizers``, its phase)."""
+    def param_group_phases(self) -> Dict[str, Tuple[str, Optional[Phase]]]:
+        """For each optimiser parameter group: (template key in ``optimizers``, the phase it trains in).
+
+        A block's groups use the ``encoder`` / ``appearance`` templates, and ``block_decoder`` for a
+        fine-tuned decoder copy."""
         phase_of_block = {phase.block: phase for phase in self.phases}
         templates = {}
-        for group in self.model.get_param_groups():
-            if group.startswith("block"):
-                prefix, name = group.split(".", 1)
-                block = int(prefix[len("block"):])
-                template = "block_decoder" if name == "decoder" and self.config.decoder_mode == "finetune" else name
-                templates[group] = (template, phase_of_block.get(block))
-            else:
-                templates[group] = (group, phase_of_block.get(None))
+        for group, _ in self.model.param_groups_by_model():
+            finetuned = group.block is not None and group.part == "decoder" and self.config.decoder_mode == "finetune"
+            templates[group.name] = ("block_decoder" if finetuned else group.part, phase_of_block.get(group.block))
         return templates
 
 

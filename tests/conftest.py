@@ -8,6 +8,7 @@ import socket
 import subprocess
 import sys
 import time
+import urllib.request
 from pathlib import Path
 from typing import List, Optional
 
@@ -97,6 +98,32 @@ def sigkill_after_checkpoint(process: subprocess.Popen, output_dir: Path, min_st
     process.send_signal(signal.SIGKILL)
     process.wait()
     return step
+
+
+def viewer_page(config: Path, timeout: float = 300.0) -> str:
+    """Start ``ns-viewer`` on a run's config.yml as a user does, fetch its page, stop it; returns the page.
+
+    Fails the calling test if the viewer exits or serves nothing within ``timeout`` seconds."""
+    port = free_port()
+    viewer = subprocess.Popen(
+        [sys.executable, "-m", "nerfstudio.scripts.viewer.run_viewer", "--load-config", str(config), "--viewer.websocket-port", str(port)],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )
+    try:
+        deadline = time.time() + timeout
+        page = None
+        while time.time() < deadline and viewer.poll() is None and page is None:
+            try:
+                with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=5) as response:
+                    page = response.read().decode("utf-8", "replace")
+            except OSError:
+                time.sleep(1.0)
+        assert viewer.poll() is None, viewer.stdout.read()[-3000:] if viewer.stdout else ""
+        assert page is not None, f"the viewer served nothing on port {port} within {timeout:.0f} s"
+        return page
+    finally:
+        viewer.terminate()
+        viewer.wait(timeout=60)
 
 
 def castle_args() -> List[str]:

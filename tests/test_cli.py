@@ -5,13 +5,11 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
-import time
-import urllib.request
 from pathlib import Path
 
 import pytest
 
-from conftest import free_port, ns_eval, run_dirs
+from conftest import free_port, ns_eval, run_dirs, viewer_page
 from scalar_nerfstudio.metrics import alexnet_weights_path
 
 
@@ -38,26 +36,8 @@ def test_ns_eval_reports_psnr_ssim_without_downloading(trained_castle_run: Path,
 
 @pytest.mark.slow
 def test_ns_viewer_serves_a_trained_run(trained_castle_run: Path) -> None:
-    port = free_port()
-    viewer = subprocess.Popen(
-        [sys.executable, "-m", "nerfstudio.scripts.viewer.run_viewer", "--load-config", str(trained_castle_run / "config.yml"), "--viewer.websocket-port", str(port)],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-    )
-    try:
-        deadline = time.time() + 300
-        page = None
-        while time.time() < deadline and viewer.poll() is None:
-            try:
-                with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=5) as response:
-                    page = response.read().decode("utf-8", "replace")
-                break
-            except OSError:
-                time.sleep(1.0)
-        assert viewer.poll() is None, viewer.stdout.read()[-3000:] if viewer.stdout else ""
-        assert page is not None and "<html" in page.lower()
-    finally:
-        viewer.terminate()
-        viewer.wait(timeout=60)
+    page = viewer_page(trained_castle_run / "config.yml")
+    assert "<html" in page.lower()
 
 
 @pytest.mark.slow
@@ -70,6 +50,9 @@ def test_demo_command_trains_on_the_builtin_scene(tmp_path: Path) -> None:
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     (run,) = run_dirs(tmp_path / "outputs")
     assert (run / "nerfstudio_models" / "step-000000029.ckpt").is_file()
+    assert (run / "preview.png").is_file(), "a preview is written at the last step"
+    assert f"ns-viewer --load-config {run / 'config.yml'}" in result.stdout, "the demo ends with the next commands"
+    assert "Warning" not in result.stdout + result.stderr, "library warnings are not the user's business"
 
 
 def test_ci_runs_the_readme_test_command() -> None:

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import subprocess
 import sys
 import time
@@ -41,8 +40,11 @@ DensityFn = Callable[[Tensor], Tensor]
 
 
 def _world(unit_positions: Tensor) -> Tensor:
-    """Contracted unit-cube positions -> world positions, inside the unit ball (where contraction is the identity)."""
-    return (unit_positions - 0.5) * 4.0
+    """Contracted unit-cube positions -> world positions (inverse of ``contract_to_unit_cube`` below radius 2)."""
+    contracted = (unit_positions - 0.5) * 4.0
+    norm = torch.linalg.vector_norm(contracted, dim=-1, keepdim=True)
+    outside = contracted / norm.clamp_min(1.0) / (2.0 - norm.clamp(1.0, 2.0 - 1e-6))
+    return torch.where(norm <= 1.0, contracted, outside)
 
 
 def _model_with_density(density: DensityFn, **config: object) -> ScalarModel:
@@ -66,9 +68,14 @@ def _half_space(world: Tensor) -> Tensor:
 SPHERE_RADIUS = 0.4
 
 
-def _sphere(world: Tensor) -> Tensor:
-    """Solid ball of radius 0.4 at the origin (a smooth step 0.01 wide): normals point radially outwards."""
-    return 400.0 * torch.sigmoid((SPHERE_RADIUS - torch.linalg.vector_norm(world, dim=-1)) / 0.01)
+def _sphere(centre: Tuple[float, float, float]) -> DensityFn:
+    """Solid ball of radius 0.4 around ``centre`` (a smooth step 0.01 wide): normals point radially outwards."""
+
+    def density(world: Tensor) -> Tensor:
+        distance = torch.linalg.vector_norm(world - torch.tensor(centre), dim=-1)
+        return 400.0 * torch.sigmoid((SPHERE_RADIUS - distance) / 0.01)
+
+    return density
 
 
 def _decoded(outputs: dict) -> Tensor:
@@ -123,21 +130,25 @@ def test_half_space_normals_are_the_plane_normal() -> None:
     assert (normals[:, 2] > 0.9999).all(), normals[normals[:, 2] <= 0.9999]
 
 
-def test_sphere_normals_are_radial() -> None:
-    model = _model_with_density(_sphere)
+@pytest.mark.parametrize("centre", [(0.0, 0.0, 0.0), (1.6, 0.0, 0.5)], ids=["unit-ball", "contracted"])
+def test_sphere_normals_are_radial(centre: Tuple[float, float, float]) -> None:
+    """Also beyond radius 1, where the hash grid lives in contracted space: the gradient is taken
+    through the contraction, so the normals are the world-space ones."""
+    model = _model_with_density(_sphere(centre), num_samples_per_ray=128)
     generator = torch.Generator().manual_seed(0)
     angles = torch.rand(64, generator=generator) * 2 * math.pi
-    origins = torch.stack([0.9 * torch.cos(angles), 0.9 * torch.sin(angles), 0.3 * (torch.rand(64, generator=generator) - 0.5)], dim=-1)
-    targets = 0.2 * (torch.rand(64, 3, generator=generator) - 0.5)  # aimed near the centre: no grazing rays
+    offsets = torch.stack([0.9 * torch.cos(angles), 0.9 * torch.sin(angles), 0.3 * (torch.rand(64, generator=generator) - 0.5)], dim=-1)
+    origins = torch.tensor(centre) + offsets
+    targets = torch.tensor(centre) + 0.2 * (torch.rand(64, 3, generator=generator) - 0.5)  # aimed near the centre: no grazing rays
     directions = torch.nn.functional.normalize(targets - origins, dim=-1)
     with torch.no_grad():
         outputs = model(ray_bundle(origins, directions))
     assert (outputs["accumulation"] > 0.99).all()
     normals = _decoded(outputs)
-    hits = origins + directions * outputs["depth"]
-    assert (torch.linalg.vector_norm(hits, dim=-1) - SPHERE_RADIUS).abs().max() < 0.03
+    hits = origins + directions * outputs["depth"] - torch.tensor(centre)
+    assert (torch.linalg.vector_norm(hits, dim=-1) - SPHERE_RADIUS).abs().max() < 0.05
     expected = torch.nn.functional.normalize(hits, dim=-1)
-    assert (normals * expected).sum(-1).min() > 0.99
+    assert (normals * expected).sum(-1).min() > 0.98
 
 
 @pytest.mark.parametrize(
@@ -272,6 +283,109 @@ def test_fused_normals_follow_the_fusion(scene: Path, tmp_path: Path) -> None:
             else:
                 assert torch.isfinite(normals).all()
         assert "normals" not in model.get_outputs_for_camera(trainer.pipeline.datamanager.train_dataset.cameras[0:1])
+    outputs, _, _ = trainer.pipeline.get_eval_loss_dict(0)  # the eval batch during training: no normals
+    assert "normals" not in outputs and "rgb" in outputs and model.render_normals == "rays"
 
 
 # ---------------------------------------------------------------------- ns-export on a trained run
+
+#: A two-block run on the courtyard that forms geometry in about a minute on one core: small tables,
+#: 32 samples per ray, a stronger distortion loss (compact surfaces) and enough steps per block
+#: (a block's hash grid starts empty: after 100 steps it is still a haze).
+EXPORT_RUN = [
+    "--pipeline.num-blocks", "2",
+    "--pipeline.global-steps", "300",
+    "--pipeline.block-steps", "400",
+    "--pipeline.model.field.log2-hashmap-size", "14",
+    "--pipeline.model.field.max-resolution", "256",
+    "--pipeline.block-log2-hashmap-size", "14",
+    "--pipeline.block-max-resolution", "256",
+    "--pipeline.model.num-samples-per-ray", "32",
+    "--pipeline.model.distortion-loss-mult", "0.02",
+    "--pipeline.datamanager.train-num-rays-per-batch", "1024",
+    "--steps-per-save", "100000",
+]
+#: The courtyard's walled area (world metres) with a margin: the export's oriented box.
+COURTYARD_MIN, COURTYARD_MAX = np.array([-6.8, -6.8, -0.3]), np.array([6.8, 6.8, 3.3])
+
+
+def _surface_distance_and_normal(points: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """[N, 3] world points -> distance (m) to the nearest surface of the courtyard (ground plane z = 0 or
+    a face of a box of DEFAULT_BOXES), that surface's unit normal [N, 3], and which surface (-1: ground)."""
+    distance = np.abs(points[:, 2])
+    normal = np.tile([0.0, 0.0, 1.0], (len(points), 1))
+    surface = np.full(len(points), -1)
+    rows = np.arange(len(points))
+    for index, box in enumerate(DEFAULT_BOXES):
+        lo, hi = np.array(box.lo), np.array(box.hi)
+        to_faces = np.concatenate([points - lo, hi - points], axis=1)  # [N, 6] signed distance to each face plane
+        inside = (to_faces > 0).all(axis=1)
+        box_distance = np.where(inside, to_faces.min(axis=1), np.linalg.norm(np.maximum(np.maximum(lo - points, points - hi), 0.0), axis=1))
+        face = np.argmin(np.abs(to_faces), axis=1)
+        face_normal = np.zeros_like(points)
+        face_normal[rows, face % 3] = np.where(face < 3, -1.0, 1.0)
+        closer = box_distance < distance
+        distance = np.where(closer, box_distance, distance)
+        normal[closer], surface[closer] = face_normal[closer], index
+    return distance, normal, surface
+
+
+def _rpy(rotation: np.ndarray) -> Tuple[float, float, float]:
+    """Roll, pitch, yaw (radians) of a [3, 3] rotation R = Rz(yaw) Ry(pitch) Rx(roll) (OrientedBox.from_params' convention)."""
+    pitch = -math.asin(float(np.clip(rotation[2, 0], -1.0, 1.0)))
+    return math.atan2(rotation[2, 1], rotation[2, 2]), pitch, math.atan2(rotation[1, 0], rotation[0, 0])
+
+
+@pytest.mark.slow
+def test_ns_export_pointcloud_of_a_fused_run_lies_on_the_courtyard(tmp_path: Path) -> None:
+    """``ns-export pointcloud`` (nerfstudio's own command, default ``--normal-method model_output``) of a
+    global + 2-block run: one merged cloud of the fused render, near the scene's known surfaces, with
+    unit normals that on the ground mostly point along its normal."""
+    import open3d as o3d
+    import torch as _torch
+
+    start = time.time()
+    scene = tmp_path / "scene"
+    write_scene(scene, num_images=40, width=160, height=120)
+    trained = subprocess.run(ns_train_command(scene, tmp_path / "outputs", *EXPORT_RUN), capture_output=True, text=True, timeout=900)
+    assert trained.returncode == 0, trained.stdout[-3000:] + trained.stderr[-3000:]
+    (run,) = run_dirs(tmp_path / "outputs")
+    (checkpoint,) = (run / "nerfstudio_models").glob("step-*.ckpt")
+    assert _torch.load(checkpoint, map_location="cpu", weights_only=True)["pipeline"]["_model.blocks_started"].tolist() == [True, True]
+    trained_at = time.time()
+
+    # The oriented box: the courtyard mapped into the dataparser's normalised frame, p' = s (R p + t).
+    transforms = json.loads((run / "dataparser_transforms.json").read_text())
+    transform, scale = np.array(transforms["transform"]), float(transforms["scale"])
+    rotation, translation = transform[:, :3], transform[:, 3]
+    centre = scale * (rotation @ ((COURTYARD_MIN + COURTYARD_MAX) / 2.0) + translation)
+    exported = subprocess.run(
+        [sys.executable, "-m", "nerfstudio.scripts.exporter", "pointcloud", "--load-config", str(run / "config.yml"),
+         "--output-dir", str(tmp_path / "export"), "--num-points", "3000", "--remove-outliers", "False", "--num-rays-per-batch", "8192",
+         "--obb-center", *map(str, centre), "--obb-rotation", *map(str, _rpy(rotation)), "--obb-scale", *map(str, scale * (COURTYARD_MAX - COURTYARD_MIN))],
+        capture_output=True, text=True, timeout=600,
+    )
+    assert exported.returncode == 0, exported.stdout[-3000:] + exported.stderr[-3000:]
+    cloud = o3d.io.read_point_cloud(str(tmp_path / "export" / "point_cloud.ply"))
+    points, normals = np.asarray(cloud.points), np.asarray(cloud.normals)
+    assert len(points) >= 3000 and cloud.has_normals() and normals.shape == points.shape
+    assert np.isfinite(normals).all() and np.allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-3)
+
+    world_points = (points / scale - translation) @ rotation  # R^T (p' / s - t), as row vectors
+    world_normals = normals @ rotation
+    distance, surface_normal, surface = _surface_distance_and_normal(world_points)
+    random_points = np.random.default_rng(0).uniform(COURTYARD_MIN, COURTYARD_MAX, size=(len(points), 3))
+    chance = float(np.median(_surface_distance_and_normal(random_points)[0]))
+    summary = (
+        f"distance to the nearest surface (m): median {np.median(distance):.3f} (uniform points in the box: {chance:.3f}), "
+        f"within 0.25 m: {np.mean(distance < 0.25):.2f}; "
+    )
+    assert np.median(distance) < 0.25 and np.mean(distance < 0.25) > 0.5 and np.median(distance) < chance / 2, summary
+
+    on_ground = (surface == -1) & (distance < 0.1)
+    agreement = np.abs(np.sum(world_normals * surface_normal, axis=1))
+    summary += f"{on_ground.sum()} points on the ground, |dot| > 0.7 for {np.mean(agreement[on_ground] > 0.7):.2f} (isotropic: 0.30)"
+    # Measured 0.54-0.69 over runs and export seeds (a one-minute run: the density is still noisy, and
+    # only the ground near the walls is reconstructed yet, in the contracted part of the blocks' frames).
+    assert on_ground.sum() >= 30 and np.mean(agreement[on_ground] > 0.7) > 0.45, summary
+    print(f"{summary}; trained in {trained_at - start:.0f} s, exported in {time.time() - trained_at:.0f} s")

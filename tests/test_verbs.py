@@ -12,8 +12,6 @@ import json
 import shutil
 import subprocess
 import sys
-import time
-import urllib.request
 from pathlib import Path
 from typing import Dict, List
 
@@ -21,7 +19,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from conftest import free_port, ns_eval, ns_train_command, run_dirs
+from conftest import ns_eval, ns_train_command, run_dirs, viewer_page
 from scalar_nerfstudio.blocks.plan import load_plan
 from scalar_nerfstudio.data.synthetic_scene import write_scene
 
@@ -143,23 +141,18 @@ def test_eval_and_fusion_commands(auto_runs: Dict[str, Path], name: str, tmp_pat
 
 @pytest.mark.parametrize("name", ["k1", "k2"])
 def test_ns_viewer_loads_the_run(auto_runs: Dict[str, Path], name: str) -> None:
-    port = free_port()
-    viewer = subprocess.Popen(
-        [sys.executable, "-m", "nerfstudio.scripts.viewer.run_viewer", "--load-config", str(auto_runs[name] / "config.yml"),
-         "--viewer.websocket-port", str(port)],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-    )
-    try:
-        deadline = time.time() + 300
-        page = None
-        while time.time() < deadline and viewer.poll() is None and page is None:
-            try:
-                with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=5) as response:
-                    page = response.read().decode("utf-8", "replace")
-            except OSError:
-                time.sleep(1.0)
-        assert viewer.poll() is None, viewer.stdout.read()[-3000:] if viewer.stdout else ""
-        assert page is not None and "<html" in page.lower()
-    finally:
-        viewer.terminate()
-        viewer.wait(timeout=60)
+    assert "<html" in viewer_page(auto_runs[name] / "config.yml").lower()
+
+
+@pytest.mark.parametrize("name", ["k1", "k2"])
+def test_ns_export_pointcloud(auto_runs: Dict[str, Path], name: str, tmp_path: Path) -> None:
+    """One merged point cloud of the fused model, with unit normals (where its points lie is checked
+    on a longer run in test_export.py)."""
+    import open3d as o3d
+
+    _run([sys.executable, "-m", "nerfstudio.scripts.exporter", "pointcloud", "--load-config", str(auto_runs[name] / "config.yml"),
+          "--output-dir", str(tmp_path), "--num-points", "300", "--remove-outliers", "False", "--num-rays-per-batch", "4096"])
+    cloud = o3d.io.read_point_cloud(str(tmp_path / "point_cloud.ply"))
+    points, normals = np.asarray(cloud.points), np.asarray(cloud.normals)
+    assert len(points) > 0 and cloud.has_normals() and normals.shape == points.shape
+    assert np.isfinite(points).all() and np.allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-3)

@@ -100,7 +100,6 @@ class ScalarDataManager(VanillaDataManager[ScalarInputDataset]):
     def create_train_dataset(self) -> ScalarInputDataset:
         """Training dataset of the subset (only its images are ever read)."""
         if self.config.image_subset is not None:
-            self.full_train_dataparser_outputs = self.train_dataparser_outputs
             self.train_dataparser_outputs = subset_dataparser_outputs(self.train_dataparser_outputs, self.config.image_subset)
         return self._with_background(super().create_train_dataset())
 

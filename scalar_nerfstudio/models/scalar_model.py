@@ -245,7 +245,7 @@ class ScalarModel(NormalsOutput, Model):
             "appearance": list(self.field.appearance.parameters()),
         }
 
-    def _update_occupancy(self, step: int) -> None:
+    def update_occupancy(self, step: int) -> None:
         """Update the occupancy grid at ``step`` of this model's phase (the pipeline calls it before each step)."""
         self.occupancy.update(step, self._density_no_grad)
 

@@ -65,6 +65,21 @@ def block_region(block: Block) -> Tuple[Tuple[float, float, float], float]:
     return block.centre, max(half_extent, MIN_REGION_RADIUS)
 
 
+@dataclass(frozen=True)
+class ParamGroup:
+    """An optimiser parameter group: which model it belongs to and which part of that model it is."""
+
+    block: Optional[int]
+    """None: the global model; k: block k's model."""
+    part: str
+    """``encoder``, ``decoder`` or ``appearance``."""
+
+    @property
+    def name(self) -> str:
+        """The group's name (a key of the optimisers): ``decoder``, ``block3.decoder``, ..."""
+        return self.part if self.block is None else f"block{self.block}.{self.part}"
+
+
 class ScalarSceneModel(NormalsOutput, Model):
     """Global model, block models and their fusion.
 
@@ -76,7 +91,6 @@ class ScalarSceneModel(NormalsOutput, Model):
     Keyword args (from the pipeline):
         split: the :class:`BlockSplit` of the training images (indices into them).
         block_ids: which blocks this model holds (all of them, or one in a ``scalar-nerf-block`` run).
-        block_num_images: images per held block (sizes its appearance embedding).
         block_capacities: {k: BlockCapacity} table size and finest resolution of block k's model
             (default: the config's field settings).
         decoder_mode: ``finetune`` / ``frozen`` (start from the global decoder) or ``independent``.
@@ -96,9 +110,7 @@ class ScalarSceneModel(NormalsOutput, Model):
         self.decoder_mode: DecoderMode = self.kwargs.get("decoder_mode", "finetune")
         if self.decoder_mode not in ("finetune", "frozen", "independent"):
             raise ValueError(f"decoder_mode {self.decoder_mode!r}: expected finetune, frozen or independent")
-        num_images: Dict[int, int] = self.kwargs.get("block_num_images") or {
-            b.index: len(b.image_indices) for b in self.split.blocks
-        }
+        num_images: Dict[int, int] = {b.index: len(b.image_indices) for b in self.split.blocks}  # sizes appearance embeddings
         self.fusion_mode: ParsedFusionMode = parse_fusion_mode(self.config.fusion, self.split.num_blocks)
         self._view_blocks: Optional[List[int]] = None
         self.rendered_models: set = set()
@@ -152,10 +164,14 @@ class ScalarSceneModel(NormalsOutput, Model):
 
     def get_param_groups(self) -> Dict[str, List[Parameter]]:
         """``encoder`` / ``decoder`` / ``appearance`` of the global model, ``block{k}.*`` of each block."""
-        groups = dict(self.global_model.get_param_groups())
+        return {group.name: params for group, params in self.param_groups_by_model()}
+
+    def param_groups_by_model(self) -> List[Tuple[ParamGroup, List[Parameter]]]:
+        """Every parameter group with the model it belongs to (:class:`ParamGroup`), in
+        :meth:`get_param_groups` order."""
+        groups = [(ParamGroup(None, part), params) for part, params in self.global_model.get_param_groups().items()]
         for index in self.block_ids:
-            for name, params in self.blocks[str(index)].get_param_groups().items():
-                groups[f"block{index}.{name}"] = params
+            groups += [(ParamGroup(index, part), params) for part, params in self.blocks[str(index)].get_param_groups().items()]
         return groups
 
     # --------------------------------------------------------------------------- rendering
@@ -164,9 +180,11 @@ class ScalarSceneModel(NormalsOutput, Model):
         self.fusion_mode = parse_fusion_mode(mode, self.split.num_blocks)
 
     @torch.no_grad()
-    def get_outputs_for_camera(self, camera: Cameras, obb_box=None) -> Dict[str, Tensor]:
-        """Render one camera, fusing only the blocks whose AABB can be in its view (if configured)."""
-        self._view_blocks = self.visible_blocks(camera) if self.config.skip_invisible_blocks else None
+    def get_outputs_for_camera(self, camera: Cameras, obb_box=None, skip_invisible_blocks: Optional[bool] = None) -> Dict[str, Tensor]:
+        """Render one camera, fusing only the blocks whose AABB can be in its view (``skip_invisible_blocks``,
+        default: the config's)."""
+        skip = self.config.skip_invisible_blocks if skip_invisible_blocks is None else skip_invisible_blocks
+        self._view_blocks = self.visible_blocks(camera) if skip else None
         self.rendered_models: set = set()
         try:
             return super().get_outputs_for_camera(camera, obb_box=obb_box)

@@ -69,8 +69,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                         help="courtyard: small, a few minutes (default); town: the large street scene blocks are for")
     parser.add_argument("--scene-dir", type=Path, default=None, help="where the scene is written (default: OUTPUT_DIR/scenes/SCENE)")
     parser.add_argument("--num-images", type=int, default=None, help="images of the scene (default: the scene's own)")
-    parser.add_argument("--global-steps", type=int, default=400, help="steps of the global phase")
-    parser.add_argument("--num-blocks", type=int, default=2, help="blocks the images are split into (0: automatic)")
+    parser.add_argument("--global-steps", type=int, default=500, help="steps of the global phase")
+    parser.add_argument("--num-blocks", type=int, default=0,
+                        help="blocks the images are split into (default 0: automatic, as ns-train scalar-nerf decides; "
+                             "the courtyard fits one model, so no block is trained unless this is set)")
     parser.add_argument("--block-steps", type=int, default=200, help="steps of each block's phase")
     parser.add_argument("--steps-per-preview", type=int, default=100, help="write RUN/preview.png every this many steps")
     parser.add_argument("--max-num-iterations", type=int, default=0, help="stop after this many steps in all (0: every phase)")
@@ -96,9 +98,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         *([] if args.num_blocks == 0 else ["--pipeline.num-blocks", str(args.num_blocks)]),
         *extra,
     ]
-    blocks = "automatic K" if args.num_blocks == 0 else f"{args.num_blocks} blocks"
+    blocks = (f"then, if the scene needs K > 1 blocks (automatic K), each block for {args.block_steps} steps" if args.num_blocks == 0
+              else f"then {args.num_blocks} blocks for {args.block_steps} steps each")
     print(
-        f"Training SCALAR-NeRF: the global model for {args.global_steps} steps, then {blocks} x {args.block_steps} steps.\n"
+        f"Training SCALAR-NeRF: the global model for {args.global_steps} steps, {blocks}.\n"
         f"A preview (held-out view | ground truth) is written every {args.steps_per_preview} steps to "
         f"{args.output_dir / scene_dir.name / 'scalar-nerf' / '<timestamp>' / 'preview.png'}; "
         "the viewer's address is printed below.\nRunning: " + " ".join(command),

@@ -42,12 +42,11 @@ def _render_all(pipeline, mode: str, skip: bool) -> Tuple[Dict[str, float], List
     """Mean metrics and ms/image of ``mode`` over the eval images; returns the rendered images too."""
     model = pipeline.model
     model.set_fusion(mode)
-    model.config.skip_invisible_blocks = skip
     sums: Dict[str, float] = {}
     images, times, blocks_rendered, globals_rendered = [], [], [], []
     for camera, batch in pipeline.datamanager.fixed_indices_eval_dataloader:
         start = time.perf_counter()
-        outputs = model.get_outputs_for_camera(camera=camera)
+        outputs = model.get_outputs_for_camera(camera=camera, skip_invisible_blocks=skip)
         times.append(time.perf_counter() - start)
         blocks_rendered.append(len(model.rendered_models - {"global"}))
         globals_rendered.append("global" in model.rendered_models)
