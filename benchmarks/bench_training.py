@@ -31,7 +31,7 @@ def train_one(method: str, data: str, downscale: int, seconds: float, steps: int
     import torch
 
     from scalar_nerfstudio.engine.timing import time_train_iterations
-    from scalar_nerfstudio.scripts._benchmark_runner import trainer_config
+    from scalar_nerfstudio.benchmarking.runner import trainer_config
 
     # the benchmark runner's set-up (every 8th image held out, no evaluation or checkpoints while
     # training; LPIPS stubbed out for nerfacto, whose weights would be downloaded), on the CPU

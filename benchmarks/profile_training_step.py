@@ -25,7 +25,7 @@ def main() -> None:
     args = parser.parse_args()
 
     from scalar_nerfstudio.engine.timing import time_train_iterations
-    from scalar_nerfstudio.scripts._benchmark_runner import trainer_config
+    from scalar_nerfstudio.benchmarking.runner import trainer_config
 
     # the benchmark's trainer set-up: eval every 8th image, no evaluation or checkpoints while training
     config = trainer_config({

@@ -240,8 +240,7 @@ class ScalarPipeline(VanillaPipeline):
     def _load_global_model(self, checkpoint: Path, device: str) -> None:
         """Load the global model's weights (only those) from another run's checkpoint."""
         state = torch.load(checkpoint, map_location=device, weights_only=True)["pipeline"]
-        prefix = "_model.global_model."
-        global_state = {k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix)}
+        global_state = ScalarSceneModel.global_state(state)
         if not global_state:
             raise ValueError(f"{checkpoint} holds no global model (is it a scalar-nerf checkpoint?)")
         self.model.global_model.load_state_dict(global_state, strict=True)

@@ -1,4 +1,5 @@
-"""Run folders: the one module that knows their layout (standard library and PyYAML; torch only to save).
+"""Run folders: the one module that knows their layout (standard library and PyYAML; torch only to
+save, load and assemble checkpoints).
 
 A run folder (``OUTPUT/EXPERIMENT/METHOD/TIMESTAMP``) holds
 
@@ -10,14 +11,20 @@ A run folder (``OUTPUT/EXPERIMENT/METHOD/TIMESTAMP``) holds
 
 from __future__ import annotations
 
+import json
 import os
 import re
+import shutil
+from datetime import datetime
 from pathlib import Path
-from typing import Any, Dict, Optional
+from typing import TYPE_CHECKING, Any, Dict, List, Optional, Tuple
 
 import yaml
 
 from scalar_nerfstudio.atomic_io import atomic_write_text
+
+if TYPE_CHECKING:
+    import torch
 
 CONFIG_NAME = "config.yml"
 BLOCKS_JSON_NAME = "blocks.json"
@@ -99,3 +106,104 @@ def latest_checkpoint(run_dir: Path, config: Any) -> Path:
 def report_path(run_dir: Path) -> Path:
     """Where a run keeps its model report (parameters, table sizes, memory)."""
     return Path(run_dir) / REPORT_NAME
+
+
+def _load_checkpoint(path: Path) -> Dict[str, Any]:
+    import torch
+
+    return torch.load(path, map_location="cpu", weights_only=True)
+
+
+# ------------------------------------------------------------------ assembling block runs into one run
+class AssembleError(RuntimeError):
+    """The runs cannot be combined (named in the message)."""
+
+
+def load_run(run: Path) -> Tuple[Path, object, Path]:
+    """(run folder, its config, its newest checkpoint) for a run folder or its config.yml."""
+    config_path = run_config_path(run)
+    try:
+        config = load_run_config(config_path)
+        return config_path.parent, config, latest_checkpoint(config_path.parent, config)
+    except RunError as error:
+        raise AssembleError(str(error)) from None
+
+
+def _split_of(run_dir: Path) -> Tuple[List[str], List[Tuple[int, ...]]]:
+    """(training image names, each block's image indices) of a run's blocks.json."""
+    from scalar_nerfstudio.blocks.split import BlockSplitError, load_blocks_json  # numpy and sklearn: only here
+
+    try:
+        split, names = load_blocks_json(blocks_json_path(run_dir))
+    except BlockSplitError as error:
+        raise AssembleError(f"{run_dir}: {error}") from None
+    return names, [block.image_indices for block in split.blocks]
+
+
+def merge_block_states(global_state: Dict[str, torch.Tensor], block_states: Dict[int, Dict[str, torch.Tensor]]) -> Dict[str, torch.Tensor]:
+    """The global run's pipeline state with block k's weights taken from ``block_states[k]``.
+
+    Every block given is marked as started (it will be fused); a block not given keeps what the
+    global run has for it (trained there, or not started and so not fused).
+    """
+    from scalar_nerfstudio.models.scene_model import ScalarSceneModel
+
+    merged = dict(global_state)
+    started_key = ScalarSceneModel.started_key()
+    started = merged[started_key].clone()
+    for block, state in block_states.items():
+        weights = {k: state[k] for k in ScalarSceneModel.block_keys(state, block)}
+        if not weights:
+            raise AssembleError(f"block {block}: the block run's checkpoint holds no weights for it")
+        missing = set(ScalarSceneModel.block_keys(merged, block)) - set(weights)
+        if missing:
+            raise AssembleError(f"block {block}: the block run lacks {len(missing)} tensors, e.g. {sorted(missing)[0]}")
+        for key, value in weights.items():
+            if key in merged and merged[key].shape != value.shape:
+                raise AssembleError(f"block {block}: {key} has shape {list(value.shape)}, the global run {list(merged[key].shape)}")
+            merged[key] = value
+        started[block] = True
+    merged[started_key] = started
+    return merged
+
+
+def assemble(global_run: Path, block_runs: List[Path], output_dir: Optional[Path] = None) -> Path:
+    """Write the combined run; returns its folder."""
+    global_dir, global_config, global_checkpoint = load_run(global_run)
+    split = _split_of(global_dir)
+    block_states: Dict[int, Dict[str, torch.Tensor]] = {}
+    sources: Dict[int, Path] = {}
+    for block_run in block_runs:
+        run_dir, config, checkpoint = load_run(block_run)
+        block = getattr(config.pipeline, "only_block", None)
+        if block is None:
+            raise AssembleError(f"{run_dir} is not a scalar-nerf-block run")
+        if _split_of(run_dir) != split:
+            raise AssembleError(f"{run_dir} was split differently from {global_dir} (its blocks.json differs)")
+        if block in sources:
+            raise AssembleError(f"block {block} is given twice: {sources[block]} and {run_dir}")
+        block_states[block] = _load_checkpoint(checkpoint)["pipeline"]
+        sources[block] = run_dir
+    state = _load_checkpoint(global_checkpoint)
+    merged = merge_block_states(state["pipeline"], block_states)
+
+    timestamp = datetime.now().strftime("%Y-%m-%d_%H%M%S") + "-assembled"
+    root = Path(output_dir) if output_dir is not None else Path(global_config.output_dir)
+    run_dir = root / global_config.experiment_name / global_config.method_name / timestamp
+    global_config.output_dir = root
+    global_config.timestamp = timestamp
+    global_config.load_dir = None
+    model_dir = run_dir / global_config.relative_model_dir
+    model_dir.mkdir(parents=True)
+    for name in (BLOCKS_JSON_NAME, "dataparser_transforms.json"):
+        if (global_dir / name).is_file():
+            shutil.copy2(global_dir / name, run_dir / name)
+    if getattr(global_config.pipeline, "run_plan", None) is not None:
+        global_config.pipeline.run_plan = blocks_json_path(run_dir).resolve()  # the copy: the new run is self-contained
+    atomic_torch_save({"step": state["step"], "pipeline": merged}, model_dir / checkpoint_name(state["step"]))
+    save_run_config(global_config, run_dir)
+    atomic_write_text(
+        run_dir / ASSEMBLED_FROM_NAME,
+        json.dumps({"global_run": str(global_dir), "blocks": {str(k): str(v) for k, v in sorted(sources.items())}}, indent=2),
+    )
+    return run_dir

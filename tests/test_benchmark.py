@@ -9,7 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from scalar_nerfstudio.scripts.benchmark import BenchmarkConfig, _on_front, plan
+from scalar_nerfstudio.benchmarking.report import on_pareto_front
+from scalar_nerfstudio.scripts.benchmark import BenchmarkConfig, plan
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
@@ -79,8 +80,8 @@ def test_pareto_front() -> None:
         {"psnr": 21.0, "parameters": 20, "train_s": 5},
         {"psnr": 19.0, "parameters": 30, "train_s": 9},
     ]
-    assert [_on_front(r, rows, "parameters") for r in rows] == [True, True, False]
-    assert [_on_front(r, rows, "train_s") for r in rows] == [False, True, False]
+    assert [on_pareto_front(r, rows, "parameters") for r in rows] == [True, True, False]
+    assert [on_pareto_front(r, rows, "train_s") for r in rows] == [False, True, False]
 
 
 def test_timing_helpers_time_steps_and_calls() -> None:

@@ -11,6 +11,8 @@ from typing import Any, Dict, Iterable, List, Optional
 import torch
 from torch import nn
 
+from scalar_nerfstudio.atomic_io import atomic_write_text
+
 MIB = float(1 << 20)
 
 
@@ -97,4 +99,5 @@ def write_report(report: Dict[str, Any], path: Path, extra: Optional[Dict[str, A
     """Save the report (and ``extra`` keys) as JSON."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps({**report, **(extra or {})}, indent=2) + "\n")
+    atomic_write_text(path, json.dumps({**report, **(extra or {})}, indent=2) + "\n")
+

@@ -109,7 +109,7 @@ class ScalarTrainerConfig(TrainerConfig):
         if self.load_dir is None:
             return None
         run_dir = Path(self.load_dir).resolve().parent
-        is_run = (run_dir / "config.yml").is_file() and run_dir.parent.name == self.method_name
+        is_run = run_config_path(run_dir).is_file() and run_dir.parent.name == self.method_name
         return run_dir if is_run else None
 
 

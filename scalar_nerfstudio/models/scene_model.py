@@ -140,6 +140,27 @@ class ScalarSceneModel(NormalsOutput, Model):
         field_config = replace(self.config.field, log2_hashmap_size=capacity.log2_hashmap_size, max_resolution=capacity.max_resolution)
         return replace(self.config, field=field_config)
 
+    # -------------------------------------------------------------- checkpoint layout
+    #: Where the pipeline keeps this model in its state dict (nerfstudio's ``Pipeline._model``).
+    PIPELINE_KEY_PREFIX = "_model."
+
+    @classmethod
+    def global_state(cls, pipeline_state: Dict[str, Tensor]) -> Dict[str, Tensor]:
+        """The global model's own state dict, out of a pipeline checkpoint's ``pipeline`` state."""
+        prefix = f"{cls.PIPELINE_KEY_PREFIX}global_model."
+        return {k[len(prefix):]: v for k, v in pipeline_state.items() if k.startswith(prefix)}
+
+    @classmethod
+    def block_keys(cls, pipeline_state: Dict[str, Tensor], block: int) -> List[str]:
+        """The keys of block ``block``'s model in a pipeline checkpoint's ``pipeline`` state."""
+        prefix = f"{cls.PIPELINE_KEY_PREFIX}blocks.{block}."
+        return [k for k in pipeline_state if k.startswith(prefix)]
+
+    @classmethod
+    def started_key(cls) -> str:
+        """The key of the ``blocks_started`` flags in a pipeline checkpoint's ``pipeline`` state."""
+        return f"{cls.PIPELINE_KEY_PREFIX}blocks_started"
+
     # ------------------------------------------------------------------------------ phases
     def phase_model(self, block: Optional[int]) -> ScalarModel:
         """The model trained in a phase: the global model (block None) or block ``block``'s."""

@@ -16,6 +16,8 @@ import sys
 from pathlib import Path
 from typing import List, Optional, Sequence
 
+from scalar_nerfstudio.runs import run_config_path
+
 #: Library warnings (deprecations inside torch, nerfstudio, websockets) that are not the user's business.
 QUIET_WARNINGS = "ignore::FutureWarning,ignore::DeprecationWarning,ignore::UserWarning"
 
@@ -42,13 +44,13 @@ def write_demo_scene(scene: str, folder: Path, num_images: Optional[int]) -> Non
 
 def newest_run(output_dir: Path, experiment: str, method: str = "scalar-nerf") -> Optional[Path]:
     """The newest run folder of ``experiment`` under ``output_dir`` (None if there is none)."""
-    runs = sorted((output_dir / experiment / method).glob("*/config.yml"))
-    return runs[-1].parent if runs else None
+    runs = sorted(path for path in (output_dir / experiment / method).glob("*") if run_config_path(path).is_file())
+    return runs[-1] if runs else None
 
 
 def next_steps(run: Path) -> str:
     """The commands that view, evaluate and render a finished run."""
-    config = run / "config.yml"
+    config = run_config_path(run)
     return "\n".join([
         f"Done. The run is in {run}; its last preview is {run / 'preview.png'}.",
         "Next:",

@@ -11,17 +11,18 @@ time of ``global`` fusion with and without skipping, and how much the images dif
 from __future__ import annotations
 
 import json
-import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Dict, List, Tuple
+from typing import Dict, Tuple
 
-import torch
 import tyro
 from nerfstudio.utils.eval_utils import eval_setup
 
+from scalar_nerfstudio.atomic_io import atomic_write_text
 from scalar_nerfstudio.fusion import FUSION_MODES
-from scalar_nerfstudio.metrics import psnr
+from scalar_nerfstudio.fusion_eval import evaluate_fusion_modes, markdown_table
+
+__all__ = ["EvalFusionArgs", "entrypoint", "evaluate", "main", "markdown_table"]
 
 
 @dataclass
@@ -38,29 +39,8 @@ class EvalFusionArgs:
     """Also render global fusion without frustum skipping and compare."""
 
 
-def _render_all(pipeline, mode: str, skip: bool) -> Tuple[Dict[str, float], List[torch.Tensor]]:
-    """Mean metrics and ms/image of ``mode`` over the eval images; returns the rendered images too."""
-    model = pipeline.model
-    model.set_fusion(mode)
-    sums: Dict[str, float] = {}
-    images, times, blocks_rendered, globals_rendered = [], [], [], []
-    for camera, batch in pipeline.datamanager.fixed_indices_eval_dataloader:
-        start = time.perf_counter()
-        outputs = model.get_outputs_for_camera(camera=camera, skip_invisible_blocks=skip)
-        times.append(time.perf_counter() - start)
-        blocks_rendered.append(len(model.rendered_models - {"global"}))
-        globals_rendered.append("global" in model.rendered_models)
-        metrics, _ = model.get_image_metrics_and_images(outputs, batch)
-        for key, value in metrics.items():
-            sums[key] = sums.get(key, 0.0) + float(value)
-        images.append(outputs["rgb"].clamp(0, 1).cpu())
-    count = max(len(images), 1)
-    result = {key: value / count for key, value in sums.items()}
-    result["ms_per_image"] = 1000.0 * sum(times) / count
-    result["num_images"] = len(images)
-    result["blocks_rendered_per_image"] = sum(blocks_rendered) / count
-    result["global_model_rendered"] = all(globals_rendered)
-    return result, images
+def _print_row(mode: str, row: Dict[str, float]) -> None:
+    print(f"{mode:>12}: " + ", ".join(f"{k} {v:.4g}" for k, v in row.items()), flush=True)
 
 
 def evaluate(args: EvalFusionArgs) -> Dict[str, Dict[str, float]]:
@@ -68,63 +48,14 @@ def evaluate(args: EvalFusionArgs) -> Dict[str, Dict[str, float]]:
     _, pipeline, _, _ = eval_setup(args.load_config, test_mode="test")
     if not hasattr(pipeline.model, "set_fusion"):
         raise SystemExit(f"{args.load_config} is not a scalar-nerf run")
-    pipeline.eval()
-    table: Dict[str, Dict[str, float]] = {}
-    rendered: Dict[str, List[torch.Tensor]] = {}
-    with torch.no_grad():
-        for mode in args.modes:
-            table[mode], rendered[mode] = _render_all(pipeline, mode, skip=True)
-            print(f"{mode:>12}: " + ", ".join(f"{k} {v:.4g}" for k, v in table[mode].items()), flush=True)
-        if args.measure_skipping and "global" in rendered:
-            unskipped, images = _render_all(pipeline, "global", skip=False)
-            differences = [float((a - b).abs().max()) for a, b in zip(rendered["global"], images)]
-            agreement = [float(psnr(a, b)) for a, b in zip(rendered["global"], images)]
-            table["global-without-skipping"] = unskipped
-            table["skipping"] = {
-                "ms_per_image_with": table["global"]["ms_per_image"],
-                "ms_per_image_without": unskipped["ms_per_image"],
-                "time_saved_fraction": 1.0 - table["global"]["ms_per_image"] / max(unskipped["ms_per_image"], 1e-9),
-                "max_abs_pixel_difference": max(differences, default=0.0),
-                "min_psnr_between_renders": min(agreement, default=float("inf")),
-                "identical_images": sum(d == 0.0 for d in differences),
-                "num_images": len(differences),
-            }
-    return table
-
-
-def markdown_table(table: Dict[str, Dict[str, float]]) -> str:
-    """The per-mode rows as a Markdown table (and a line on skipping)."""
-    has_lpips = any("lpips" in row for row in table.values())
-    header = "| fusion | PSNR | SSIM |" + (" LPIPS |" if has_lpips else "") + " ms / image | models rendered / image |"
-    lines = [header, "|" + "---|" * (header.count("|") - 1)]
-    for mode, row in table.items():
-        if mode == "skipping":
-            continue
-        cells = [mode, f"{row['psnr']:.2f}", f"{row['ssim']:.3f}"]
-        if has_lpips:
-            cells.append(f"{row['lpips']:.3f}" if "lpips" in row else "-")
-        models = f"{row['blocks_rendered_per_image']:.2f} blocks" + (" + global" if row.get("global_model_rendered") else "")
-        cells += [f"{row['ms_per_image']:.0f}", models]
-        lines.append("| " + " | ".join(cells) + " |")
-    if "skipping" in table:
-        s = table["skipping"]
-        lines.append("")
-        lines.append(
-            f"Frustum skipping (global fusion): {s['ms_per_image_with']:.0f} ms/image with, {s['ms_per_image_without']:.0f} without "
-            f"({100 * s['time_saved_fraction']:.0f} % saved); {s['identical_images']} of {s['num_images']} images identical, "
-            f"largest pixel difference {s['max_abs_pixel_difference']:.3f}."
-        )
-    if not has_lpips:
-        lines.append("")
-        lines.append("LPIPS skipped: torchvision's AlexNet weights are not on disk (nothing is downloaded).")
-    return "\n".join(lines) + "\n"
+    return evaluate_fusion_modes(pipeline, args.modes, args.measure_skipping, on_mode=_print_row)
 
 
 def main(args: EvalFusionArgs) -> None:
     table = evaluate(args)
     args.output_dir.mkdir(parents=True, exist_ok=True)
-    (args.output_dir / "fusion.json").write_text(json.dumps(table, indent=2))
-    (args.output_dir / "fusion.md").write_text(markdown_table(table))
+    atomic_write_text(args.output_dir / "fusion.json", json.dumps(table, indent=2))
+    atomic_write_text(args.output_dir / "fusion.md", markdown_table(table))
     print(markdown_table(table))
     print(f"written: {args.output_dir / 'fusion.json'}, {args.output_dir / 'fusion.md'}")
 

@@ -128,7 +128,7 @@ def assemble_blocks(global_dir: Path, runs: Dict[int, Path], assembled_root: Pat
     if fused is not None:
         print(f"already assembled (blocks {names}): {fused}")
     else:
-        from scalar_nerfstudio.scripts.assemble import AssembleError, assemble
+        from scalar_nerfstudio.runs import AssembleError, assemble
 
         try:
             fused = assemble(global_dir, [runs[k] for k in sorted(runs)], assembled_root)

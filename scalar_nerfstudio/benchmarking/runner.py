@@ -1,8 +1,8 @@
 """One variant of ``scalar-nerf-benchmark``, in its own process: train, evaluate along the way, report.
 
-    python -m scalar_nerfstudio.scripts._benchmark_runner SPEC.json
+    python -m scalar_nerfstudio.benchmarking.runner SPEC.json
 
-SPEC (written by the benchmark) holds: ``method`` ("scalar-nerf" or "nerfacto"), ``data``,
+SPEC (written by :func:`.schedule.variant_spec`) holds: ``method`` ("scalar-nerf" or "nerfacto"), ``data``,
 ``downscale``, ``overrides`` (dotted trainer-config attributes -> values), ``eval_every`` (evaluate
 every this many steps; 0: never during training), ``eval_at_end``, ``time_limit_s`` (stop training after this much training
 wall-clock; 0: none), ``fusions`` (fusion modes to evaluate at the end; the first is the run's),
@@ -23,6 +23,7 @@ from typing import Any, Dict, List
 
 import torch
 
+from scalar_nerfstudio.atomic_io import atomic_write_text
 from scalar_nerfstudio.engine.device import resolve_machine
 from scalar_nerfstudio.engine.report import MIB, peak_memory_mib, tensor_bytes
 from scalar_nerfstudio.engine.timing import StepClock, time_train_iterations
@@ -167,7 +168,7 @@ def run(spec: Dict[str, Any]) -> Dict[str, Any]:
         started = model.started_block_ids()
         result["num_blocks"] = len(started)
         result["block_tables"] = {str(k): int(model.blocks[str(k)].field.config.log2_hashmap_size) for k in started}
-    Path(spec["result"]).write_text(json.dumps(result, indent=2))
+    atomic_write_text(Path(spec["result"]), json.dumps(result, indent=2))
     return result
 
 

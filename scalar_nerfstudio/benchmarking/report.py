@@ -1,0 +1,189 @@
+"""The benchmark's report: one row per (variant, fusion) with its Pareto fronts, and the files.
+
+Written to the output folder: results.json (the report: command, machine, config, notes, rows, the
+variants' results), results.md (the table) and psnr_vs_time.png, psnr_vs_render_time.png,
+psnr_vs_parameters.png. The JSON and Markdown are written atomically.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any, Dict, List, Optional, Tuple
+
+from scalar_nerfstudio.atomic_io import atomic_write_text
+from scalar_nerfstudio.benchmarking.variants import BenchmarkConfig
+
+__all__ = [
+    "LABELS", "describe_machine", "markdown", "on_pareto_front", "plots", "results_table_text", "rewrite_report",
+    "rows", "write_report",
+]
+
+#: Rows of the report: (variant, fusion) -> label.
+LABELS: Dict[Tuple[str, str], str] = {
+    ("ngp19", "global"): "NGP_19 (one model, 2^19)",
+    ("ngp21", "global"): "NGP_21 (one model, 2^21)",
+    ("scalar", "global"): "SCALAR-NeRF (blocks + global fusion)",
+    ("scalar", "idw"): "blocks + IDW (same models)",
+    ("scalar", "nearest"): "blocks + nearest (same models)",
+    ("scalar-wo-sd", "global"): "SCALAR-NeRF w/o SD (independent decoders)",
+    ("scalar-wo-sd", "idw"): "Block-NeRF-style (independent blocks + IDW)",
+    ("scalar-wo-ft", "global"): "SCALAR-NeRF w/o FT (frozen decoder)",
+    ("scalar-s1.0", "global"): "SCALAR-NeRF, s_AABB = 1.0",
+    ("scalar-autocap", "global"): "SCALAR-NeRF, automatic block tables",
+    ("auto", "global"): "automatic K and capacity",
+    ("nerfacto", "global"): "nerfacto (torch), same wall-clock",
+}
+
+
+def rows(results: Dict[str, Dict[str, Any]], notes: Optional[Dict[str, str]] = None) -> List[Dict[str, Any]]:
+    """One row per (variant, fusion): label, time, metrics, parameters, memory."""
+    labels = dict(LABELS)
+    if notes and "auto" in notes and "auto" not in results:  # automatic K = 1: the ngp19 run is it
+        labels[("ngp19", "global")] += " = automatic K and capacity"
+    out = []
+    for name, result in results.items():
+        if name == "global":
+            continue
+        for fusion, metrics in (result.get("fusions") or {"global": result["final"]}).items():
+            fusion_key = "global" if fusion in ("global", "global-only") else fusion
+            out.append({
+                "variant": name, "fusion": fusion, "label": labels.get((name, fusion_key), f"{name} ({fusion})"),
+                "steps": result["steps"], "train_s": result["train_s"], "train_rays_per_s": result["train_rays_per_s"],
+                "psnr": metrics["psnr"], "ssim": metrics["ssim"], "lpips": metrics.get("lpips"),
+                "render_ms_per_image": metrics["render_ms_per_image"], "parameters": result["parameters"],
+                "peak_rss_mib": result["peak_rss_mib"], "num_blocks": result.get("num_blocks"),
+            })
+    for row in out:
+        row["pareto_parameters"] = on_pareto_front(row, out, "parameters")
+        row["pareto_time"] = on_pareto_front(row, out, "train_s")
+    return out
+
+
+def on_pareto_front(row: Dict[str, Any], all_rows: List[Dict[str, Any]], cost: str) -> bool:
+    """No other row has lower-or-equal ``cost`` and higher-or-equal PSNR with one of them strict."""
+    return not any(
+        other is not row and other[cost] <= row[cost] and other["psnr"] >= row["psnr"]
+        and (other[cost] < row[cost] or other["psnr"] > row["psnr"])
+        for other in all_rows
+    )
+
+
+def markdown(config: BenchmarkConfig, table: List[Dict[str, Any]], notes: Dict[str, str], command: str, machine: str) -> str:
+    total = config.global_steps + config.num_blocks * config.block_steps
+    lines = [
+        f"# Speed against error: {config.data.name if config.data else 'synthetic'} (downscale {config.downscale})",
+        "",
+        f"Command: `{command}`",
+        "",
+        f"Machine: {machine}. Budget: {total} steps of {config.rays_per_batch} rays for every SCALAR/NGP variant "
+        f"(global phase G = {config.global_steps}, K = {config.num_blocks} blocks x B = {config.block_steps}); nerfacto: "
+        "the wall-clock of `scalar`. Training time excludes evaluation. Eval split: every 8th image. "
+        "LPIPS: not computed for nerfacto (its weights need a download); for ours only when the weights are available offline.",
+        "",
+        "| variant | fusion | steps | train s | rays/s | PSNR | SSIM | render ms/img | parameters | peak RSS MiB | Pareto (params / time) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in sorted(table, key=lambda r: -r["psnr"]):
+        front = f"{'yes' if r['pareto_parameters'] else '-'} / {'yes' if r['pareto_time'] else '-'}"
+        lines.append(
+            f"| {r['label']} | {r['fusion']} | {r['steps']} | {r['train_s']:.0f} | {r['train_rays_per_s']:.0f} | {r['psnr']:.2f} | "
+            f"{r['ssim']:.3f} | {r['render_ms_per_image']:.0f} | {r['parameters'] / 1e6:.1f} M | {r['peak_rss_mib']:.0f} | {front} |"
+        )
+    if notes:
+        lines += ["", *[f"- {name}: {note}" for name, note in notes.items()]]
+    lines += ["", "![PSNR vs training time](psnr_vs_time.png)", "", "![PSNR vs render time](psnr_vs_render_time.png)", "",
+              "![PSNR vs parameters](psnr_vs_parameters.png)", ""]
+    return "\n".join(lines)
+
+
+def plots(results: Dict[str, Dict[str, Any]], table: List[Dict[str, Any]], output_dir: Path) -> List[Path]:
+    """PSNR vs training time (curves), vs render time and vs parameters (points): three PNGs."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    written = []
+    figure, axes = plt.subplots(figsize=(7, 4.5))
+    for name, result in results.items():
+        curve = result["curve"]
+        if curve:
+            axes.plot([p["train_s"] / 60 for p in curve], [p["psnr"] for p in curve], marker="o", markersize=3,
+                      label=LABELS.get((name, "global"), name), linestyle="--" if name == "global" else "-")
+    axes.set_xlabel("training time (min, evaluation excluded)")
+    axes.set_ylabel("eval PSNR (dB)")
+    axes.grid(alpha=0.3)
+    axes.legend(fontsize=7)
+    figure.tight_layout()
+    written.append(output_dir / "psnr_vs_time.png")
+    figure.savefig(written[-1], dpi=120)
+    plt.close(figure)
+    for key, xlabel, filename in (
+        ("render_ms_per_image", "render time per eval image (ms, log)", "psnr_vs_render_time.png"),
+        ("parameters", "parameters (log)", "psnr_vs_parameters.png"),
+    ):
+        figure, axes = plt.subplots(figsize=(9, 4.5))
+        markers = "osD^vP*Xh<>p"
+        for index, row in enumerate(sorted(table, key=lambda r: -r["psnr"])):
+            axes.scatter(row[key], row["psnr"], s=36, marker=markers[index % len(markers)], label=f"{row['label']} ({row['psnr']:.2f} dB)")
+        axes.set_xscale("log")
+        axes.set_xlabel(xlabel)
+        axes.set_ylabel("eval PSNR (dB)")
+        axes.grid(alpha=0.3)
+        axes.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5))
+        figure.tight_layout()
+        written.append(output_dir / filename)
+        figure.savefig(written[-1], dpi=120)
+        plt.close(figure)
+    return written
+
+
+def describe_machine() -> str:
+    """E.g. ``"16 CPU cores, CUDA"``: the report's machine line."""
+    import torch
+
+    return f"{os.cpu_count()} CPU cores" + (", CUDA" if torch.cuda.is_available() else ", no GPU")
+
+
+def _write(output_dir: Path, config: BenchmarkConfig, report: Dict[str, Any]) -> None:
+    """results.json, results.md and the plots of ``report``."""
+    atomic_write_text(output_dir / "results.json", json.dumps(report, indent=2))
+    atomic_write_text(output_dir / "results.md", markdown(config, report["rows"], report["notes"], report["command"], report["machine"]))
+    plots(report["results"], report["rows"], output_dir)
+
+
+def write_report(config: BenchmarkConfig, results: Dict[str, Dict[str, Any]], notes: Dict[str, str], command: str, started: float) -> Dict[str, Any]:
+    """The report of a benchmark run (``started``: ``time.time()`` when its variants started), written
+    to ``config.output_dir``; returns it."""
+    table = rows(results, notes)
+    machine = describe_machine()
+    report = {
+        "command": command, "machine": machine, "config": {k: str(v) if isinstance(v, Path) else v for k, v in asdict(config).items()},
+        "notes": notes, "rows": table, "results": results, "wall_clock_s": time.time() - started,
+    }
+    _write(config.output_dir, config, report)
+    return report
+
+
+def rewrite_report(output_dir: Path) -> Dict[str, Any]:
+    """results.md and the plots again from results.json (e.g. after a change to the report)."""
+    path = output_dir / "results.json"
+    if not path.is_file():
+        raise SystemExit(f"scalar-nerf-benchmark: {path} not found (run the benchmark first)")
+    report = json.loads(path.read_text())
+    saved = report["config"]
+    config = BenchmarkConfig(**{k: v for k, v in saved.items() if k in BenchmarkConfig.__dataclass_fields__})
+    config.data = Path(saved["data"]) if saved.get("data") not in (None, "None") else None
+    config.output_dir = output_dir
+    report["rows"] = rows(report["results"], report["notes"])
+    _write(output_dir, config, report)
+    return report
+
+
+def results_table_text(output_dir: Path) -> str:
+    """results.md of ``output_dir`` without its plots (what the command prints)."""
+    return (output_dir / "results.md").read_text().split("\n![")[0]

@@ -1,0 +1,118 @@
+"""Running the benchmark's variants: the scene, then each planned variant in its own subprocess, in order.
+
+Each variant is trained by ``python -m scalar_nerfstudio.benchmarking.runner SPEC.json`` (see
+:mod:`.runner`); its output goes to ``runs/<variant>.log``, its ``PROGRESS`` lines drive a progress
+bar, and its result JSON is read back. A block variant's result includes the global phase it started
+from (time, steps and curve).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any, Dict, List, Tuple
+
+from scalar_nerfstudio.benchmarking.variants import BenchmarkConfig, Variant, plan, use_quick_budgets
+
+__all__ = ["RUNNER_MODULE", "prepare", "run_variant", "run_variants", "variant_spec"]
+
+#: The worker module each variant runs in (``python -m RUNNER_MODULE SPEC.json``).
+RUNNER_MODULE = "scalar_nerfstudio.benchmarking.runner"
+
+
+def _quick_scene(output_dir: Path) -> Path:
+    from scalar_nerfstudio.data.synthetic_scene import write_scene
+
+    scene = output_dir / "scene"
+    if not (scene / "transforms.json").is_file():
+        write_scene(scene, num_images=24, width=96, height=72)
+    return scene
+
+
+def prepare(config: BenchmarkConfig) -> Tuple[List[Variant], Dict[str, str]]:
+    """Make ``config.output_dir`` (and ``runs/`` in it), the synthetic scene and budgets of ``--quick``,
+    check the scene folder; the planned variants and notes (see :func:`.variants.plan`)."""
+    output_dir = config.output_dir
+    output_dir.mkdir(parents=True, exist_ok=True)
+    if config.quick:
+        config.data = config.data or _quick_scene(output_dir)
+        use_quick_budgets(config)
+    if config.data is None or not Path(config.data).is_dir():
+        raise SystemExit(f"scalar-nerf-benchmark: --data {config.data} is not a scene folder (or use --quick)")
+    variants, notes = plan(config)
+    (output_dir / "runs").mkdir(exist_ok=True)
+    return variants, notes
+
+
+def variant_spec(config: BenchmarkConfig, variant: Variant, runs: Path, results: Dict[str, Dict[str, Any]]) -> Dict[str, Any]:
+    """The SPEC the runner trains ``variant`` from (``results``: the variants run so far)."""
+    overrides = dict(variant.overrides)
+    if variant.base is not None:
+        overrides["pipeline.global_checkpoint"] = results[variant.base]["checkpoint"]
+    eval_every = config.eval_every
+    if variant.method == "nerfacto":  # time-limited: evaluated at the end only (its renders take ~1 min)
+        eval_every = 0
+        overrides["max_num_iterations"] = 10**6
+    return {
+        "name": variant.name, "method": variant.method, "data": str(config.data), "downscale": config.downscale,
+        "overrides": overrides, "eval_every": eval_every, "time_limit_s": variant.time_limit_s, "fusions": variant.fusions,
+        "output_dir": str(runs / variant.name), "result": str(runs / f"{variant.name}.json"),
+        "keep_checkpoint": variant.name == "global",
+    }
+
+
+def run_variant(config: BenchmarkConfig, variant: Variant, runs: Path, results: Dict[str, Dict[str, Any]], progress, task) -> Dict[str, Any]:
+    """Train one variant in a subprocess (progress bar from its PROGRESS lines); its result dict."""
+    spec = variant_spec(config, variant, runs, results)
+    spec_path = runs / f"{variant.name}.spec.json"
+    spec_path.write_text(json.dumps(spec, indent=2))
+    log_path = runs / f"{variant.name}.log"
+    command = [sys.executable, "-m", RUNNER_MODULE, str(spec_path)]
+    with log_path.open("w", buffering=1) as log:  # line-buffered: the log can be followed while it runs
+        process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+        assert process.stdout is not None
+        for line in process.stdout:
+            log.write(line)
+            if line.startswith("PROGRESS "):
+                done, total = (float(x) for x in line.split()[1:3])
+                progress.update(task, completed=done, total=max(total, 1.0))
+            elif config.verbose:
+                progress.console.print(line.rstrip())
+        code = process.wait()
+    if code != 0:
+        tail = "".join(log_path.read_text().splitlines(keepends=True)[-30:])
+        raise SystemExit(f"scalar-nerf-benchmark: variant {variant.name} failed (exit {code}); log {log_path}:\n{tail}")
+    result = json.loads(Path(spec["result"]).read_text())
+    if variant.name == "global":
+        checkpoints = sorted((Path(result["run_dir"]) / "nerfstudio_models").glob("step-*.ckpt"))
+        result["checkpoint"] = str(checkpoints[-1])
+    if variant.base is not None:  # the global phase it started from is part of its cost
+        base = results[variant.base]
+        offset_s, offset_steps = base["train_s"], base["steps"]
+        result["curve"] = base["curve"] + [{**p, "train_s": p["train_s"] + offset_s, "step": p["step"] + offset_steps} for p in result["curve"]]
+        rays = result["train_rays_per_s"] * result["train_s"] + base["train_rays_per_s"] * offset_s
+        result["train_s"] += offset_s
+        result["steps"] += offset_steps
+        result["train_rays_per_s"] = rays / max(result["train_s"], 1e-9)
+    return result
+
+
+def run_variants(config: BenchmarkConfig, variants: List[Variant]) -> Dict[str, Dict[str, Any]]:
+    """Every variant in order under ``config.output_dir/runs``, with a progress bar each; their results
+    by name. nerfacto gets the wall-clock of ``scalar`` (else twice the global phase's)."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    runs = config.output_dir / "runs"
+    results: Dict[str, Dict[str, Any]] = {}
+    with Progress(TextColumn("{task.description:<16}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn()) as progress:
+        tasks = {v.name: progress.add_task(v.name, total=1.0, start=False) for v in variants}
+        for variant in variants:
+            progress.start_task(tasks[variant.name])
+            if variant.name == "nerfacto":
+                variant.time_limit_s = results["scalar"]["train_s"] if "scalar" in results else results["global"]["train_s"] * 2
+            results[variant.name] = run_variant(config, variant, runs, results, progress, tasks[variant.name])
+            progress.update(tasks[variant.name], completed=progress.tasks[tasks[variant.name]].total)
+    return results

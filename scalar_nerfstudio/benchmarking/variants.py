@@ -1,0 +1,153 @@
+"""The benchmark's settings and its variant plan: which variants run, in which order, with which configs.
+
+Variants (same scene, same machine, same run; each trains in its own process):
+
+* ``ngp19`` / ``ngp21``: one model (the paper's NGP_19 / NGP_21), ``G + K B`` steps, table 2^19 / 2^21.
+* ``global``: the SCALAR-NeRF global phase (``G`` steps, table 2^19). The block variants below all
+  start from this one trained global model (its time is counted in theirs), as in the paper.
+* ``scalar``: K blocks of ``B`` steps each, fine-tuned decoders, s_AABB = 1.2, tables 2^19; evaluated
+  with ``global`` fusion (SCALAR-NeRF), ``idw`` and ``nearest`` (the same models, other fusions).
+* ``scalar-wo-sd``: independent decoders (the paper's "w/o SD"); evaluated with ``global`` fusion and
+  with ``idw``, which is Block-NeRF's recipe (independent blocks + inverse distance weighting).
+* ``scalar-wo-ft``: frozen copies of the global decoder ("w/o FT").
+* ``scalar-s1.0``: s_AABB = 1.0 (no overlap beyond KMeans' cells).
+* ``scalar-autocap``: K blocks with per-block table size and resolution chosen automatically.
+* ``auto``: everything automatic (K and capacity; K = 1 means one model of ``G + K B`` steps).
+* ``nerfacto``: nerfstudio's nerfacto, torch implementation, for the wall-clock SCALAR-NeRF took.
+  Its LPIPS needs downloaded AlexNet weights, so it is not computed for nerfacto.
+
+Equal budgets: every SCALAR/NGP variant trains ``G + K B`` steps of the same ray batch; nerfacto
+trains for the same wall-clock as ``scalar`` (set when the schedule gets to it).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Dict, List, Optional, Tuple
+
+__all__ = ["VARIANTS", "BenchmarkConfig", "Variant", "auto_k", "plan", "use_quick_budgets"]
+
+VARIANTS: Tuple[str, ...] = (
+    "ngp19", "ngp21", "scalar", "scalar-wo-sd", "scalar-wo-ft", "scalar-s1.0", "scalar-autocap", "auto", "nerfacto",
+)
+
+
+@dataclass
+class BenchmarkConfig:
+    """Speed against error of every variant on one scene."""
+
+    data: Optional[Path] = None
+    """Scene folder (nerfstudio format). Required unless --quick (which makes a synthetic scene)."""
+    downscale: int = 4
+    """Image downscale factor (nerfstudio's --downscale-factor; images_4/ at 4)."""
+    output_dir: Path = Path("outputs/benchmark")
+    """Where results.json/.md and the plots go (runs under output_dir/runs)."""
+    global_steps: int = 400
+    """G: steps of the global phase."""
+    block_steps: int = 100
+    """B: steps of each block."""
+    num_blocks: int = 4
+    """K of the fixed-K variants."""
+    rays_per_batch: int = 2048
+    """Training rays per step (every variant)."""
+    eval_every: int = 200
+    """Evaluate every this many steps (plus at the end of each variant)."""
+    variants: Tuple[str, ...] = VARIANTS
+    """Which variants to run (the block variants add the global phase they start from)."""
+    quick: bool = False
+    """Synthetic 24-image scene, tiny models, a few steps: checks the harness end to end in about a minute."""
+    verbose: bool = False
+    """Show the variants' training output."""
+    from_results: bool = False
+    """Train nothing: rewrite results.md and the plots from output_dir/results.json."""
+
+
+@dataclass
+class Variant:
+    name: str
+    method: str
+    overrides: Dict[str, Any]
+    fusions: List[str] = field(default_factory=lambda: ["global"])
+    base: Optional[str] = None
+    """Variant whose trained global model this one starts from (its time and curve are prepended)."""
+    time_limit_s: float = 0.0
+
+
+def use_quick_budgets(config: BenchmarkConfig) -> None:
+    """``--quick``'s budgets (for the small synthetic scene): no downscale, a few steps, two blocks, small batches."""
+    config.downscale, config.global_steps, config.block_steps, config.num_blocks = 1, 20, 6, 2
+    config.rays_per_batch, config.eval_every = 512, 10
+
+
+def _tables(config: BenchmarkConfig) -> Tuple[int, int, Dict[str, Any]]:
+    """(log2 T of NGP_19, of NGP_21, field/sampling overrides shared by all our variants)."""
+    if config.quick:
+        return 14, 16, {
+            "pipeline.model.field.max_resolution": 256, "pipeline.model.num_samples_per_ray": 32,
+            "pipeline.model.occupancy_warmup_steps": 8,
+        }
+    return 19, 21, {}
+
+
+def auto_k(config: BenchmarkConfig, log2_t: int) -> int:
+    """The automatic K scalar-nerf would choose on this scene (same rule as the pipeline)."""
+    from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
+
+    from scalar_nerfstudio.pipeline import ScalarPipelineConfig, parsed_layout_scale
+
+    parsed = NerfstudioDataParserConfig(
+        data=config.data, downscale_factor=config.downscale, eval_mode="interval", eval_interval=8
+    ).setup().get_dataparser_outputs("train")
+    pipeline = ScalarPipelineConfig()
+    pipeline.model.field.log2_hashmap_size = log2_t
+    return pipeline.automatic_num_blocks(parsed_layout_scale(parsed), len(parsed.image_filenames))
+
+
+def plan(config: BenchmarkConfig) -> Tuple[List[Variant], Dict[str, str]]:
+    """The variants to run, in order, and notes (e.g. a variant that is the same as another)."""
+    g, b, k = config.global_steps, config.block_steps, config.num_blocks
+    total = g + k * b
+    log2_19, log2_21, shared = _tables(config)
+    common = {**shared, "pipeline.datamanager.train_num_rays_per_batch": config.rays_per_batch, "pipeline.model.field.log2_hashmap_size": log2_19}
+    fixed_tables = {"pipeline.block_log2_hashmap_size": log2_19, "pipeline.block_max_resolution": 256 if config.quick else 2048}
+    single = {**common, "pipeline.num_blocks": 1, "pipeline.train_blocks": False, "pipeline.global_steps": total}
+    blocks = {**common, "pipeline.num_blocks": k, "pipeline.global_steps": 0, "pipeline.block_steps": b}
+    notes: Dict[str, str] = {}
+    wanted = list(config.variants)
+    unknown = [v for v in wanted if v not in VARIANTS]
+    if unknown:
+        raise SystemExit(f"scalar-nerf-benchmark: unknown variant(s) {unknown}; choose from {list(VARIANTS)}")
+    out: List[Variant] = []
+    if any(v.startswith("scalar") or v == "nerfacto" for v in wanted) or "auto" in wanted:
+        out.append(Variant("global", "scalar-nerf", {**common, "pipeline.num_blocks": k, "pipeline.train_blocks": False, "pipeline.global_steps": g}))
+    for name in wanted:
+        if name == "ngp19":
+            out.append(Variant(name, "scalar-nerf", single))
+        elif name == "ngp21":
+            out.append(Variant(name, "scalar-nerf", {**single, "pipeline.model.field.log2_hashmap_size": log2_21}))
+        elif name == "scalar":
+            out.append(Variant(name, "scalar-nerf", {**blocks, **fixed_tables}, ["global", "idw", "nearest"], base="global"))
+        elif name == "scalar-wo-sd":
+            out.append(Variant(name, "scalar-nerf", {**blocks, **fixed_tables, "pipeline.decoder_mode": "independent"}, ["global", "idw"], base="global"))
+        elif name == "scalar-wo-ft":
+            out.append(Variant(name, "scalar-nerf", {**blocks, **fixed_tables, "pipeline.decoder_mode": "frozen"}, base="global"))
+        elif name == "scalar-s1.0":
+            out.append(Variant(name, "scalar-nerf", {**blocks, **fixed_tables, "pipeline.aabb_scale": [1.0, 1.0, 1.0]}, base="global"))
+        elif name == "scalar-autocap":
+            out.append(Variant(name, "scalar-nerf", blocks, base="global"))
+        elif name == "auto":
+            chosen = auto_k(config, log2_19)
+            if chosen == 1:
+                notes[name] = f"automatic K = 1 on this scene: one 2^{log2_19} model of {total} steps, the same configuration as ngp19"
+                if "ngp19" not in wanted:
+                    out.append(Variant("ngp19", "scalar-nerf", single))
+            else:
+                notes[name] = f"automatic K = {chosen}, {k * b // chosen} steps per block, automatic block tables"
+                out.append(Variant(name, "scalar-nerf", {**blocks, "pipeline.num_blocks": None, "pipeline.block_steps": k * b // chosen}, base="global"))
+        elif name == "nerfacto":
+            overrides: Dict[str, Any] = {"pipeline.datamanager.train_num_rays_per_batch": config.rays_per_batch}
+            if config.quick:
+                overrides.update({"pipeline.datamanager.train_num_rays_per_batch": 256, "pipeline.model.eval_num_rays_per_chunk": 4096})
+            out.append(Variant(name, "nerfacto", overrides))
+    return out, notes
