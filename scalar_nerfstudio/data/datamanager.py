@@ -12,8 +12,9 @@ memory (the scene check in ``data/validation.py`` accepts them and logs one line
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
-from typing import Optional, Tuple, Type
+from typing import Iterator, Optional, Tuple, Type
 
 import numpy as np
 import numpy.typing as npt
@@ -22,6 +23,7 @@ from PIL import Image
 from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
 from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManager, VanillaDataManagerConfig
 from nerfstudio.data.datasets.base_dataset import InputDataset
+from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor
 
 from scalar_nerfstudio.data.validation import to_rgb_array
@@ -90,6 +92,31 @@ class ScalarDataManagerConfig(VanillaDataManagerConfig):
     alpha_background: Tuple[float, float, float] = (1.0, 1.0, 1.0)
     """RGB in [0, 1] that transparent pixels (RGBA, grayscale+alpha, transparent palette images) are
     composited over, in memory (the scene folder is not changed)."""
+    image_cache_mib: Optional[float] = None
+    """Memory for the decoded images (float32, as nerfstudio keeps them), training and eval together.
+    None (default): a quarter of the memory available when training starts. When the images do not
+    fit, a random subset that fits is cached and replaced every ``image_resample_every`` steps, so
+    every image is sampled over time (nerfstudio's train_num_images_to_sample_from mechanism)."""
+    image_resample_every: int = 250
+    """Steps between fresh random image subsets, when not every image fits ``image_cache_mib``."""
+
+
+def images_that_fit(num_images: int, bytes_per_image: int, budget_bytes: float) -> int:
+    """How many images a cache of ``budget_bytes`` holds: all (-1) or a number >= 1.
+
+    nerfstudio loads a new subset while the old one is still referenced, so at that moment two
+    subsets are in memory: a subset may take half the budget.
+    """
+    if num_images <= 0 or bytes_per_image <= 0 or num_images * bytes_per_image <= budget_bytes:
+        return -1
+    return max(1, int(budget_bytes // (2 * bytes_per_image)))
+
+
+def available_memory_bytes() -> float:
+    """Memory available to new allocations now (psutil's ``available``)."""
+    import psutil
+
+    return float(psutil.virtual_memory().available)
 
 
 class ScalarDataManager(VanillaDataManager[ScalarInputDataset]):
@@ -105,6 +132,62 @@ class ScalarDataManager(VanillaDataManager[ScalarInputDataset]):
 
     def create_eval_dataset(self) -> ScalarInputDataset:
         return self._with_background(super().create_eval_dataset())
+
+    def image_cache_budget_bytes(self) -> float:
+        """The decoded-image budget: ``image_cache_mib``, or a quarter of the available memory."""
+        if self.config.image_cache_mib is not None:
+            return float(self.config.image_cache_mib) * 2**20
+        return available_memory_bytes() / 4.0
+
+    def image_cache_plan(self) -> Tuple[float, int, int]:
+        """(budget in bytes, training images cached at a time, eval images cached at a time); -1: all.
+
+        The budget is split between the training and eval caches in proportion to their images."""
+        budget = self.image_cache_budget_bytes()
+        fits = []
+        datasets = [self.train_dataset, self.eval_dataset]
+        total = sum(len(d) for d in datasets if d is not None)
+        for dataset in datasets:
+            if dataset is None or len(dataset) == 0:
+                fits.append(-1)
+                continue
+            cameras = dataset.cameras
+            bytes_per_image = int((cameras.width * cameras.height).max().item()) * 3 * 4  # float32 RGB, as cached
+            fits.append(images_that_fit(len(dataset), bytes_per_image, budget * len(dataset) / max(total, 1)))
+        return budget, fits[0], fits[1]
+
+    def setup_train(self) -> None:
+        """nerfstudio's set-up, with the training image cache bounded (:meth:`image_cache_plan`)."""
+        budget, train_fit, eval_fit = self.image_cache_plan()
+        if train_fit != -1 or eval_fit != -1:
+            num_train, num_eval = len(self.train_dataset), len(self.eval_dataset) if self.eval_dataset is not None else 0
+            CONSOLE.log(
+                f"image cache: {budget / 2**20:.3g} MiB (--pipeline.datamanager.image-cache-mib); caching "
+                f"{num_train if train_fit == -1 else train_fit} of {num_train} training and "
+                f"{num_eval if eval_fit == -1 else eval_fit} of {num_eval} eval images at a time, a new random subset "
+                f"every {self.config.image_resample_every} steps"
+            )
+        with self._cache_bounded("train", train_fit):
+            super().setup_train()
+
+    def setup_eval(self) -> None:
+        """nerfstudio's set-up, with the eval image cache bounded (:meth:`image_cache_plan`)."""
+        with self._cache_bounded("eval", self.image_cache_plan()[2]):
+            super().setup_eval()
+
+    @contextmanager
+    def _cache_bounded(self, split: str, fit: int) -> Iterator[None]:
+        """nerfstudio's ``{split}_num_images_to_sample_from`` / ``..._num_times_to_repeat_images`` set
+        to ``fit`` while its loader is built (unless set explicitly); the config itself is unchanged."""
+        config = self.config
+        if fit != -1 and getattr(config, f"{split}_num_images_to_sample_from") == -1:
+            self.config = replace(config, **{
+                f"{split}_num_images_to_sample_from": fit, f"{split}_num_times_to_repeat_images": config.image_resample_every,
+            })
+        try:
+            yield
+        finally:
+            self.config = config
 
     def _with_background(self, dataset: ScalarInputDataset) -> ScalarInputDataset:
         background = getattr(self.config, "alpha_background", ScalarInputDataset.alpha_background)
