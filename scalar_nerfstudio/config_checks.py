@@ -210,6 +210,7 @@ def check_block_plan(pipeline: Any, data: Path) -> None:
 
         from scalar_nerfstudio.blocks.plan import plan_blocks
         from scalar_nerfstudio.blocks.split import BlockSplitError
+        from scalar_nerfstudio.data.datamanager import camera_layout
     except ImportError:
         return
     quiet = CONSOLE.quiet
@@ -220,19 +221,10 @@ def check_block_plan(pipeline: Any, data: Path) -> None:
         return
     finally:
         CONSOLE.quiet = quiet
-    cameras = parsed.cameras
-    poses = cameras.camera_to_worlds.double()
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            plan_blocks(
-                centres=poses[:, :3, 3].numpy(),
-                directions=(-poses[:, :3, 2]).numpy(),
-                focal_px=cameras.fx.reshape(-1).double().numpy(),
-                image_pixels=(cameras.width * cameras.height).reshape(-1).tolist(),
-                image_names=[str(p) for p in parsed.image_filenames],
-                settings=plan_settings(),
-            )
+            plan_blocks(*camera_layout(parsed), image_names=[str(p) for p in parsed.image_filenames], settings=plan_settings())
     except BlockSplitError as error:
         asked = "--pipeline.num-blocks " + _show(pipeline.num_blocks) if pipeline.num_blocks is not None else "the automatic number of blocks"
         raise OptionError(

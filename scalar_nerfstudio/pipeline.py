@@ -23,7 +23,7 @@ from torch.cuda.amp.grad_scaler import GradScaler
 from scalar_nerfstudio.blocks.capacity import BlockCapacity, LayoutScale, auto_num_blocks, layout_scale
 from scalar_nerfstudio.blocks.plan import BlockPlan, PlanSettings, load_plan, plan_blocks
 from scalar_nerfstudio.blocks.split import BlockSplit, BlockSplitError, format_split_table, load_blocks_json
-from scalar_nerfstudio.data.datamanager import ScalarDataManagerConfig, camera_centres
+from scalar_nerfstudio.data.datamanager import ScalarDataManagerConfig, camera_centres, camera_layout
 from scalar_nerfstudio.viewer import BlockOverlay, fusion_dropdown
 from scalar_nerfstudio.models.scene_model import DecoderMode, ScalarSceneModel, ScalarSceneModelConfig
 
@@ -200,17 +200,7 @@ class ScalarPipeline(VanillaPipeline):
                     f"{self.config.blocks_json} lists {len(given_names)} training images that differ from the "
                     f"{len(names)} parsed from {self.config.datamanager.data} (different scene or dataparser options)"
                 )
-        poses = parsed.cameras.camera_to_worlds.double()
-        cameras = parsed.cameras
-        return plan_blocks(
-            centres=poses[:, :3, 3].numpy(),
-            directions=(-poses[:, :3, 2]).numpy(),  # optical axis: -z of the OpenGL pose
-            focal_px=cameras.fx.reshape(-1).double().numpy(),
-            image_pixels=(cameras.width * cameras.height).reshape(-1).tolist(),
-            image_names=names,
-            settings=self.config.plan_settings(),
-            given_split=given,
-        )
+        return plan_blocks(*camera_layout(parsed), image_names=names, settings=self.config.plan_settings(), given_split=given)
 
     @property
     def split(self) -> BlockSplit:
@@ -350,9 +340,9 @@ class ScalarPipeline(VanillaPipeline):
 
 
 def parsed_layout_scale(parsed) -> LayoutScale:
-    """:class:`LayoutScale` of the parsed training cameras (optical axis: -z of the OpenGL pose)."""
-    poses = parsed.cameras.camera_to_worlds.double()
-    return layout_scale(poses[:, :3, 3].numpy(), (-poses[:, :3, 2]).numpy(), parsed.cameras.fx.reshape(-1).double().numpy())
+    """:class:`LayoutScale` of the parsed training cameras."""
+    cameras = camera_layout(parsed)
+    return layout_scale(cameras.centres, cameras.directions, cameras.focal_px)
 
 
 def _image_names(filenames: List[Path], data: Optional[Path]) -> List[str]:
@@ -369,7 +359,7 @@ def _image_names(filenames: List[Path], data: Optional[Path]) -> List[str]:
 
 
 def format_eval_metrics(metrics: Dict[str, float], fusion: str) -> str:
-    """One line: image count, fusion, PSNR / SSIM / LPIPS (with std when present) and time per image."""
+    """One line: the fusion, PSNR / SSIM / LPIPS (with std when present) and time per image."""
     parts = []
     for key, label, digits in (("psnr", "PSNR", 2), ("ssim", "SSIM", 3), ("lpips", "LPIPS", 3)):
         if key in metrics:

@@ -14,7 +14,8 @@ from __future__ import annotations
 
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
-from typing import Iterator, Optional, Tuple, Type
+from functools import cached_property
+from typing import Iterator, List, NamedTuple, Optional, Tuple, Type
 
 import numpy as np
 import numpy.typing as npt
@@ -56,6 +57,31 @@ def subset_dataparser_outputs(outputs: DataparserOutputs, image_indices: Tuple[i
 def camera_centres(outputs: DataparserOutputs) -> Tensor:
     """[N, 3] camera centres of the parsed training images, in the dataparser's (normalised) frame."""
     return outputs.cameras.camera_to_worlds[:, :3, 3].clone()
+
+
+class CameraLayout(NamedTuple):
+    """The parsed training cameras as the block plan reads them (``blocks/plan.py``), float64 numpy."""
+
+    centres: np.ndarray
+    """[N, 3] camera centres (the dataparser's frame)."""
+    directions: np.ndarray
+    """[N, 3] optical axes: -z of the OpenGL camera-to-world pose."""
+    focal_px: np.ndarray
+    """[N] focal lengths in training pixels."""
+    image_pixels: List[int]
+    """[N] pixels of each training image."""
+
+
+def camera_layout(outputs: DataparserOutputs) -> CameraLayout:
+    """:class:`CameraLayout` of the parsed training cameras."""
+    cameras = outputs.cameras
+    poses = cameras.camera_to_worlds.double()
+    return CameraLayout(
+        centres=poses[:, :3, 3].numpy(),
+        directions=(-poses[:, :3, 2]).numpy(),
+        focal_px=cameras.fx.reshape(-1).double().numpy(),
+        image_pixels=(cameras.width * cameras.height).reshape(-1).tolist(),
+    )
 
 
 class ScalarInputDataset(InputDataset):
@@ -139,10 +165,12 @@ class ScalarDataManager(VanillaDataManager[ScalarInputDataset]):
             return float(self.config.image_cache_mib) * 2**20
         return available_memory_bytes() / 4.0
 
+    @cached_property
     def image_cache_plan(self) -> Tuple[float, int, int]:
         """(budget in bytes, training images cached at a time, eval images cached at a time); -1: all.
 
-        The budget is split between the training and eval caches in proportion to their images."""
+        The budget is split between the training and eval caches in proportion to their images.
+        Decided once, so the training and eval loaders (set up one after the other) agree with the log."""
         budget = self.image_cache_budget_bytes()
         fits = []
         datasets = [self.train_dataset, self.eval_dataset]
@@ -158,7 +186,7 @@ class ScalarDataManager(VanillaDataManager[ScalarInputDataset]):
 
     def setup_train(self) -> None:
         """nerfstudio's set-up, with the training image cache bounded (:meth:`image_cache_plan`)."""
-        budget, train_fit, eval_fit = self.image_cache_plan()
+        budget, train_fit, eval_fit = self.image_cache_plan
         if train_fit != -1 or eval_fit != -1:
             num_train, num_eval = len(self.train_dataset), len(self.eval_dataset) if self.eval_dataset is not None else 0
             CONSOLE.log(
@@ -172,7 +200,7 @@ class ScalarDataManager(VanillaDataManager[ScalarInputDataset]):
 
     def setup_eval(self) -> None:
         """nerfstudio's set-up, with the eval image cache bounded (:meth:`image_cache_plan`)."""
-        with self._cache_bounded("eval", self.image_cache_plan()[2]):
+        with self._cache_bounded("eval", self.image_cache_plan[2]):
             super().setup_eval()
 
     @contextmanager

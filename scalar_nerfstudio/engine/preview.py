@@ -7,14 +7,15 @@ without opening the viewer.
 
 from __future__ import annotations
 
-import os
-import tempfile
+import io
 from pathlib import Path
 from typing import Tuple
 
 import numpy as np
 import torch
 from PIL import Image
+
+from scalar_nerfstudio.atomic_io import atomic_write_bytes
 
 PREVIEW_NAME = "preview.png"
 PREVIEW_DIR = "previews"
@@ -25,17 +26,11 @@ def _to_uint8(image: torch.Tensor) -> np.ndarray:
     return (torch.nan_to_num(image.detach().float().cpu(), nan=0.0).clamp(0.0, 1.0) * 255.0 + 0.5).to(torch.uint8).numpy()
 
 
-def _save_png_atomically(image: np.ndarray, path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        Image.fromarray(image).save(tmp_name, format="PNG")
-        os.chmod(tmp_name, 0o644)
-        os.replace(tmp_name, path)
-    except BaseException:
-        Path(tmp_name).unlink(missing_ok=True)
-        raise
+def _png_bytes(image: np.ndarray) -> bytes:
+    """[H, W, 3] uint8 -> the bytes of a PNG file."""
+    buffer = io.BytesIO()
+    Image.fromarray(image).save(buffer, format="PNG")
+    return buffer.getvalue()
 
 
 @torch.no_grad()
@@ -58,8 +53,8 @@ def write_preview(pipeline, run_dir: Path, step: int) -> Tuple[Path, float]:
         truth = torch.nn.functional.interpolate(truth.permute(2, 0, 1)[None], size=rendered.shape[:2], mode="area")[0].permute(1, 2, 0)
     mse = torch.mean((rendered.clamp(0, 1) - truth) ** 2).item()
     psnr = float(-10.0 * np.log10(max(mse, 1e-10)))
-    side_by_side = np.concatenate([_to_uint8(rendered), _to_uint8(truth)], axis=1)
+    png = _png_bytes(np.concatenate([_to_uint8(rendered), _to_uint8(truth)], axis=1))
     path = Path(run_dir) / PREVIEW_NAME
-    _save_png_atomically(side_by_side, Path(run_dir) / PREVIEW_DIR / f"step-{step:09d}.png")
-    _save_png_atomically(side_by_side, path)
+    atomic_write_bytes(Path(run_dir) / PREVIEW_DIR / f"step-{step:09d}.png", png)
+    atomic_write_bytes(path, png)
     return path, psnr

@@ -119,6 +119,12 @@ def safe_normalise(vectors: Tensor, fallback: Tensor, eps: float = 1e-12) -> Ten
     return torch.where(usable, scaled / norm.clamp_min(1e-30), fallback.to(vectors.dtype).expand_as(vectors))
 
 
+def facing_normals(directions: Tensor) -> Tensor:
+    """[R, 3] unit normals facing the camera (the reversed ray directions): the normal of a ray that
+    no model gives one (nothing hit, or a flat density); +z where a direction is unusable."""
+    return safe_normalise(-directions, torch.tensor([0.0, 0.0, 1.0], dtype=directions.dtype, device=directions.device))
+
+
 def render_normals(weights: Tensor, normals: Tensor, fallback: Tensor) -> Tensor:
     """Expected surface normal of each ray: the normalised weighted sum of its samples' normals.
 

@@ -34,6 +34,7 @@ from scalar_nerfstudio.model_components.rendering import (
     alphas_from_densities,
     composite,
     distortion_loss,
+    facing_normals,
     normals_to_unit_interval,
     render_depth,
     render_normals,
@@ -325,7 +326,7 @@ class ScalarModel(NormalsOutput, Model):
         heavy = sample_ids[weights.reshape(-1)[sample_ids] > NORMALS_MIN_WEIGHT]
         sample_normals = positions.new_zeros(num_rays * num_samples, 3)
         sample_normals[heavy] = self.density_normals(positions.reshape(-1, 3)[heavy])
-        facing = safe_normalise(-directions, torch.tensor([0.0, 0.0, 1.0], dtype=directions.dtype, device=directions.device))
+        facing = facing_normals(directions)
         return render_normals(weights, sample_normals.reshape(num_rays, num_samples, 3), facing)
 
     def density_normals(self, positions: Tensor) -> Tensor:

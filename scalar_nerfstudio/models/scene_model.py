@@ -31,7 +31,7 @@ from scalar_nerfstudio.fusion import (
     select_winner,
 )
 from scalar_nerfstudio.metrics import psnr
-from scalar_nerfstudio.model_components.rendering import normals_from_unit_interval, normals_to_unit_interval, safe_normalise
+from scalar_nerfstudio.model_components.rendering import facing_normals, normals_from_unit_interval, normals_to_unit_interval, safe_normalise
 from scalar_nerfstudio.models.scalar_model import NormalsOutput, ScalarModel, ScalarModelConfig, near_far_collider
 from scalar_nerfstudio.blocks.palette import BLOCK_PALETTE, GLOBAL_COLOUR
 
@@ -287,7 +287,7 @@ class ScalarSceneModel(NormalsOutput, Model):
         A ray no model gives a normal (winner -1 without global normals) faces its camera.
         """
         directions = ray_bundle.directions.reshape(-1, 3)
-        facing = safe_normalise(-directions, torch.tensor([0.0, 0.0, 1.0], dtype=directions.dtype, device=directions.device))
+        facing = facing_normals(directions)
         fallback = global_outputs["normals"] if global_outputs is not None and "normals" in global_outputs else normals_to_unit_interval(facing)
         stacked = torch.stack([outputs["normals"] for outputs in block_outputs])  # [K, R, 3]
         if mode.kind != "idw":
