@@ -72,7 +72,6 @@ def check_pipeline_options(pipeline: Any, num_train_images: Optional[int] = None
     Raises:
         OptionError: naming the first bad option, its value and what to do.
     """
-    splits = getattr(pipeline, "blocks_json", None) is None and getattr(pipeline, "only_block", None) is None
     num_blocks = getattr(pipeline, "num_blocks", None)
     if num_blocks is not None and (not _is_int(num_blocks) or num_blocks < 1):
         raise OptionError(f"--pipeline.num-blocks {_show(num_blocks)}: must be at least 1 (1: the global model only), "
@@ -103,8 +102,20 @@ def check_pipeline_options(pipeline: Any, num_train_images: Optional[int] = None
     _at_least(pipeline, "block_max_resolution", 1, optional=True)
     _check_model(getattr(pipeline, "model", None))
     _check_data(getattr(pipeline, "datamanager", None))
-    if num_train_images is None or not splits:
+    if num_train_images is not None:
+        check_block_counts(pipeline, num_train_images, num_frames)
+
+
+def check_block_counts(pipeline: Any, num_train_images: int, num_frames: Optional[int] = None) -> None:
+    """The options that depend on the scene: blocks and images per block against the training images.
+
+    Raises:
+        OptionError: naming the option, its value and the scene's image count.
+    """
+    splits = getattr(pipeline, "blocks_json", None) is None and getattr(pipeline, "only_block", None) is None
+    if not splits:
         return
+    num_blocks = getattr(pipeline, "num_blocks", None)
     images = f"{num_train_images} training image{'s' if num_train_images != 1 else ''}"
     if num_frames is not None and num_frames != num_train_images:
         images += f" ({num_frames} frames, less those held out for evaluation)"
@@ -149,6 +160,11 @@ def _check_data(datamanager: Any) -> None:
     colour = list(background) if isinstance(background, (tuple, list)) else []
     if len(colour) != 3 or not all(isinstance(c, (int, float)) and 0.0 <= c <= 1.0 for c in colour):
         raise OptionError(f"{prefix}alpha-background {_show(background)}: must be three numbers R G B in [0, 1].")
+    budget = getattr(datamanager, "image_cache_mib", None)
+    if budget is not None and not (isinstance(budget, (int, float)) and math.isfinite(budget) and budget > 0):
+        raise OptionError(f"{prefix}image-cache-mib {_show(budget)}: must be a number of MiB > 0, or left out for a quarter "
+                          f"of the available memory.")
+    _at_least(datamanager, "image_resample_every", 1, prefix=prefix, optional=True)
     scale = getattr(datamanager, "camera_res_scale_factor", 1.0)
     if not (isinstance(scale, (int, float)) and math.isfinite(scale) and scale > 0):
         raise OptionError(f"{prefix}camera-res-scale-factor {_show(scale)}: must be a number > 0.")

@@ -444,6 +444,8 @@ OPTION_CASES = [
     ("pipeline.block_log2_hashmap_size", 40, None, "--pipeline.block-log2-hashmap-size 40"),
     ("pipeline.datamanager.train_num_rays_per_batch", 0, None, "--pipeline.datamanager.train-num-rays-per-batch 0"),
     ("pipeline.datamanager.alpha_background", (2.0, 0.0, 0.0), None, "--pipeline.datamanager.alpha-background 2 0 0"),
+    ("pipeline.datamanager.image_cache_mib", 0.0, None, "--pipeline.datamanager.image-cache-mib 0: must be a number of MiB > 0"),
+    ("pipeline.datamanager.image_resample_every", 0, None, "--pipeline.datamanager.image-resample-every 0: must be a whole number >= 1"),
     ("pipeline.datamanager.dataparser.eval_interval", 0, None, "--eval-interval 0 (nerfstudio-data)"),
     ("pipeline.datamanager.dataparser.downscale_factor", 0, None, "--downscale-factor 0 (nerfstudio-data)"),
     ("pipeline.model.field.log2_hashmap_size", 0, None, "--pipeline.model.field.log2-hashmap-size 0"),

@@ -14,7 +14,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 
 from scalar_nerfstudio.blocks.plan import load_plan, save_plan
 from scalar_nerfstudio.blocks.split import BlockSplitError, load_blocks_json
-from scalar_nerfstudio.config_checks import OptionError, check_block_plan, check_options, check_output_dir
+from scalar_nerfstudio.config_checks import OptionError, check_block_counts, check_block_plan, check_options, check_output_dir
 from scalar_nerfstudio.data.validation import SceneError, scan_scene
 from scalar_nerfstudio.engine.contract import PhasedPipeline
 from scalar_nerfstudio.engine.device import resolve_machine
@@ -79,7 +79,7 @@ class ScalarTrainerConfig(TrainerConfig):
         note = scene.conversion_note(getattr(self.pipeline.datamanager, "alpha_background", (1.0, 1.0, 1.0)))
         if note is not None:
             CONSOLE.print(f"{self.method_name}: {note}", soft_wrap=True, markup=False, highlight=False)
-        self._exit_on_option_error(check_options, self, scene.num_train, scene.num_frames)
+        self._exit_on_option_error(check_block_counts, self.pipeline, scene.num_train, scene.num_frames)
         if self.load_dir is None:
             self._exit_on_option_error(check_block_plan, self.pipeline, data)
 
