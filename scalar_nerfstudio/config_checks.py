@@ -145,6 +145,7 @@ def _check_model(model: Any) -> None:
     prefix = "--pipeline.model."
     for name in ("num_samples_per_ray", "occupancy_resolution", "occupancy_update_every"):
         _at_least(model, name, 1, prefix=prefix)
+    _at_least(model, "blocks_per_ray", 0, " (0: every block on every ray)", prefix=prefix, optional=True)
     near, far = getattr(model, "near_plane", 0.0), getattr(model, "far_plane", 1.0)
     if not (isinstance(near, (int, float)) and isinstance(far, (int, float)) and 0 <= near < far):
         raise OptionError(f"--pipeline.model.near-plane {_show(near)} / --pipeline.model.far-plane {_show(far)}: need 0 <= near < far.")

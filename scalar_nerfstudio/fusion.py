@@ -5,6 +5,12 @@ Pure tensor functions (torch only, any device).  Shapes use ``K`` blocks, ``N`` 
 units of the renders; positions (camera origins, block centres) must be in one and the
 same coordinate frame (e.g. both in the dataparser's transformed frame).
 
+Every mode is a set of per-pixel block weights (:func:`fusion_weights`, one-hot for the winner
+modes) applied by :func:`fuse_weighted`. ``global``, ``idw`` and ``surface`` can be restricted per
+pixel to a few blocks chosen by :func:`select_blocks` (those whose region holds the global model's
+surface point): a block outside a pixel's selection is not rendered there (its values are NaN, which
+every rule treats as "not available").
+
 Modes (see :func:`parse_fusion_mode`):
 
 * ``"global"``  -- per pixel, the block colour closest (L2) to the coarse global model's
@@ -12,6 +18,10 @@ Modes (see :func:`parse_fusion_mode`):
 * ``"idw"``     -- inverse distance weighting ``w_k ~ d_k^-gamma`` between the camera origin
   and the block centres (Block-NeRF style).
 * ``"nearest"`` -- the block whose centre is nearest to the camera origin.
+* ``"surface"`` -- the block whose region holds the surface the global model's depth points to:
+  per pixel, the point ``o + t d`` at the global depth ``t`` is scored against every block's region
+  (:func:`region_scores`, <= 1 inside it), the ``blocks_per_ray`` best are kept and weighted by
+  inverse score (one block per ray: that block's colour).
 * ``"global-only"`` -- the global model's outputs, no blocks.
 * ``"block:<k>"`` -- block ``k`` only (debugging).
 """
@@ -34,13 +44,19 @@ __all__ = [
     "fuse_global_guided",
     "fuse_outputs",
     "fuse_weighted",
+    "fusion_weights",
     "idw_weights",
     "nearest_block",
     "parse_fusion_mode",
+    "region_scores",
+    "score_weights",
+    "select_blocks",
     "select_winner",
+    "surface_points",
+    "weights_winner",
 ]
 
-FusionMode = Literal["global", "idw", "nearest", "global-only"]
+FusionMode = Literal["global", "surface", "idw", "nearest", "global-only"]
 FUSION_MODES: tuple[str, ...] = get_args(FusionMode)
 #: Output keys fused by :func:`fuse_outputs` (when present in every input).
 FUSED_KEYS: tuple[str, ...] = ("rgb", "depth", "accumulation")
@@ -54,7 +70,7 @@ class FusionModeError(ValueError):
 class ParsedFusionMode:
     """A parsed fusion mode: ``kind`` is a :data:`FusionMode` or ``"block"`` with ``block_index``."""
 
-    kind: Literal["global", "idw", "nearest", "global-only", "block"]
+    kind: Literal["global", "surface", "idw", "nearest", "global-only", "block"]
     block_index: int | None = None
 
     def __str__(self) -> str:
@@ -62,7 +78,7 @@ class ParsedFusionMode:
 
 
 def parse_fusion_mode(mode: str | ParsedFusionMode, num_blocks: int | None = None) -> ParsedFusionMode:
-    """Parse ``"global" | "idw" | "nearest" | "global-only" | "block:<k>"``.
+    """Parse ``"global" | "surface" | "idw" | "nearest" | "global-only" | "block:<k>"``.
 
     Args:
         mode: The mode string (case-insensitive, surrounding blanks ignored) or an already parsed mode.
@@ -239,11 +255,23 @@ def idw_weights(
         those blocks equal shares of all the weight (no division by zero).  Where no block
         is valid all weights are 0.
     """
+    gamma = _check_gamma(gamma)
+    dist = _distances(camera_origin, block_centres)
+    weights = _inverse_distance_shares(dist, _valid_mask(valid, dist.shape, dist.device), gamma)
+    out_dtype = block_centres.dtype if block_centres.is_floating_point() else torch.float32
+    return weights.to(out_dtype)
+
+
+def _check_gamma(gamma: float) -> float:
     gamma = float(gamma)
     if not (gamma >= 0.0 and gamma != float("inf")):
         raise ValueError(f"gamma must be finite and >= 0, got {gamma}")
-    dist = _distances(camera_origin, block_centres)
-    valid_mask = _valid_mask(valid, dist.shape, dist.device)
+    return gamma
+
+
+def _inverse_distance_shares(dist: Tensor, valid_mask: Tensor, gamma: float) -> Tensor:
+    """``[K]`` or ``[K, N]`` non-negative distances -> ``d_k^-gamma`` shares summing to one over the valid
+    ``k`` (0 where none is valid); a distance of 0 takes all the weight (shared among equal zeros)."""
     if gamma == 0.0:
         raw = valid_mask.to(dist.dtype)
     else:
@@ -256,10 +284,76 @@ def idw_weights(
         raw = torch.where(valid_mask, torch.exp(-gamma * torch.log(ratio)), torch.zeros_like(dist))
         at_centre = (dist == 0) & valid_mask
         raw = torch.where(at_centre.any(dim=0, keepdim=True), at_centre.to(raw), raw)
+    raw = torch.nan_to_num(raw, nan=0.0)
     total = raw.sum(dim=0, keepdim=True)
-    weights = torch.where(total > 0, raw / torch.where(total > 0, total, torch.ones_like(total)), torch.zeros_like(raw))
-    out_dtype = block_centres.dtype if block_centres.is_floating_point() else torch.float32
-    return weights.to(out_dtype)
+    return torch.where(total > 0, raw / torch.where(total > 0, total, torch.ones_like(total)), torch.zeros_like(raw))
+
+
+# --------------------------------------------------------------------------- surface-guided selection
+
+
+def surface_points(origins: Tensor, directions: Tensor, depth: Tensor) -> Tensor:
+    """``[N, 3]`` points ``o + t d`` at the depth ``t`` ``[N]`` or ``[N, 1]`` along each ray.
+
+    A depth that is NaN, negative or infinite (nothing hit, a failed render) gives the ray's origin,
+    so every point is finite for finite rays.
+    """
+    depth = depth.reshape(-1, 1).to(origins.dtype)
+    if depth.shape[0] != origins.shape[0] or origins.shape != directions.shape:
+        raise ValueError(f"origins {list(origins.shape)}, directions {list(directions.shape)} and depth {list(depth.shape)} must agree")
+    depth = torch.where(torch.isfinite(depth) & (depth > 0), depth, torch.zeros_like(depth))
+    return origins + directions * depth
+
+
+def region_scores(points: Tensor, centres: Tensor, radii: Tensor) -> Tensor:
+    """``[K, N]`` score of each point in each block's region: ``max_i |x_i - c_i| / r``.
+
+    Args:
+        points: ``[N, 3]`` world points (e.g. :func:`surface_points`).
+        centres: ``[K, 3]`` region centres, same frame.
+        radii: ``[K]`` region half-sizes (> 0): the cube a block's hash grid resolves at full resolution.
+
+    Returns:
+        ``[K, N]`` float32 (or wider) scores, ``<= 1`` inside the cube, growing with the distance from it
+        in units of the block's size; ``inf`` for a non-finite point.
+    """
+    if centres.ndim != 2 or centres.shape[1] != 3 or radii.shape != centres.shape[:1]:
+        raise ValueError(f"centres must be [K, 3] and radii [K], got {list(centres.shape)} and {list(radii.shape)}")
+    if not bool((radii > 0).all()) or not bool(torch.isfinite(radii).all()):
+        raise ValueError("region radii must be finite and > 0")
+    dtype = _compute_dtype(points, centres, radii)
+    offsets = (points.to(dtype)[None] - centres.to(device=points.device, dtype=dtype)[:, None]).abs()  # [K, N, 3]
+    scores = offsets.amax(dim=-1) / radii.to(device=points.device, dtype=dtype)[:, None]
+    return torch.where(torch.isfinite(scores), scores, torch.full_like(scores, float("inf")))
+
+
+def select_blocks(scores: Tensor, blocks_per_ray: int, usable: Tensor | None = None) -> Tensor:
+    """``[K, N]`` bool: per pixel, the ``blocks_per_ray`` usable blocks of lowest score.
+
+    Ties go to the lower block index. NaN scores count as ``inf``. ``usable`` (``[K]`` or ``[K, N]``)
+    excludes blocks; with ``blocks_per_ray >= K`` every usable block is selected.
+    """
+    if blocks_per_ray < 1:
+        raise ValueError(f"blocks_per_ray must be >= 1, got {blocks_per_ray}")
+    if scores.ndim != 2:
+        raise ValueError(f"scores must have shape [K, N], got {list(scores.shape)}")
+    mask = _valid_mask(usable, scores.shape, scores.device)
+    ranked = torch.where(mask, torch.nan_to_num(scores, nan=float("inf")), torch.full_like(scores, float("inf")))
+    if blocks_per_ray >= scores.shape[0]:
+        return mask.clone()
+    order = torch.sort(ranked, dim=0, stable=True).indices[:blocks_per_ray]  # [M, N]
+    selected = torch.zeros_like(mask)
+    selected.scatter_(0, order, torch.ones_like(order, dtype=torch.bool))
+    return selected & mask
+
+
+def score_weights(scores: Tensor, selected: Tensor, gamma: float = 1.0) -> Tensor:
+    """``[K, N]`` weights of the ``surface`` rule: ``score^-gamma`` over the selected blocks, summing to one.
+
+    A score of 0 (the point at a block's centre) takes all the weight; pixels with nothing selected
+    get all-zero weights (the caller's fallback).
+    """
+    return _inverse_distance_shares(torch.nan_to_num(scores, nan=float("inf")), selected, _check_gamma(gamma))
 
 
 def nearest_block(camera_origin: Tensor, block_centres: Tensor, valid: Tensor | None = None) -> Tensor:
@@ -358,13 +452,16 @@ def fuse_outputs(
     camera_origin: Tensor | None,
     block_centres: Tensor | None,
     gamma: float = 1.0,
+    block_scores: Tensor | None = None,
+    blocks_per_ray: int | None = None,
 ) -> dict[str, Tensor]:
     """Fuse block renders into one output dict.
 
     ``"rgb"`` is required; ``"depth"`` and ``"accumulation"`` are fused when present in
-    every block output (and, for ``"global"``, in the global output), always with the same winner (global / nearest / block) or the same
-    weights (idw) as the colour.  Values are ``[N, C]`` or image-shaped ``[H, W, C]``
-    (a missing trailing channel axis, e.g. depth ``[H, W]``, is accepted).
+    every block output (and, for ``"global"``, in the global output), always with the same weights
+    as the colour (:func:`fusion_weights`). Values are ``[N, C]`` or image-shaped ``[H, W, C]``
+    (a missing trailing channel axis, e.g. depth ``[H, W]``, is accepted). A block value that is
+    NaN/inf at a pixel (e.g. the block was not rendered there) is not used at that pixel.
 
     Args:
         mode: A :data:`FusionMode` or ``"block:<k>"``.
@@ -373,12 +470,16 @@ def fuse_outputs(
             ``"global-only"``, used as fallback (pixels without a usable block) otherwise.
         camera_origin: ``[3]`` or per-pixel ``[H, W, 3]`` / ``[N, 3]`` origins (idw/nearest).
         block_centres: ``[K, 3]`` block centres, same frame as ``camera_origin`` (idw/nearest).
-        gamma: IDW exponent.
+        gamma: IDW exponent (``idw`` and ``surface``).
+        block_scores: ``[K, *pixel_shape]`` or ``[K, N]`` :func:`region_scores` of each pixel's
+            surface point (required for ``surface``).
+        blocks_per_ray: ``surface``: how many of the best-scoring blocks are weighted per pixel
+            (default: all).
 
     Returns:
         Fused ``"rgb"`` (+ ``"depth"``, ``"accumulation"``) shaped like the inputs, and
         ``"block_winner"`` (int64, the pixel shape): the chosen block, the largest-weight
-        block for idw, ``-1`` for the global fallback and for ``"global-only"``.
+        block for idw / surface, ``-1`` for the global fallback and for ``"global-only"``.
     """
     parsed = parse_fusion_mode(mode)
     if parsed.kind in ("global", "global-only") and (global_outputs is None or "rgb" not in global_outputs):
@@ -397,44 +498,89 @@ def fuse_outputs(
     if global_outputs is not None:
         glob = {k: _flatten(global_outputs[k], pixel_shape, k) for k in keys if k in global_outputs}
     if parsed.kind == "global-only":
-        fused = dict(glob)  # type: ignore[arg-type]
-        winner = torch.full((num_pixels,), -1, dtype=torch.long, device=reference.device)
-    else:
-        stacked = {k: torch.stack([_flatten(o[k], pixel_shape, k) for o in block_outputs]) for k in keys}
-        fused, winner = _fuse_blocks(parsed, stacked, glob, camera_origin, block_centres, gamma, pixel_shape)
+        out = {k: v.reshape(*pixel_shape, v.shape[-1]) for k, v in glob.items()}  # type: ignore[union-attr]
+        out["block_winner"] = torch.full(pixel_shape, -1, dtype=torch.long, device=reference.device)
+        return out
+    stacked = {k: torch.stack([_flatten(o[k], pixel_shape, k) for o in block_outputs]) for k in keys}
+    scores = None if block_scores is None else block_scores.reshape(len(block_outputs), num_pixels)
+    weights = fusion_weights(
+        parsed, stacked["rgb"], None if glob is None else glob.get("rgb"),
+        None if camera_origin is None else _origins(camera_origin, pixel_shape), block_centres, gamma, scores, blocks_per_ray,
+    )
+    fused = {k: fuse_weighted(v, weights, None if glob is None else glob.get(k)) for k, v in stacked.items()}
     out = {k: v.reshape(*pixel_shape, v.shape[-1]) for k, v in fused.items()}
-    out["block_winner"] = winner.reshape(pixel_shape)
+    out["block_winner"] = weights_winner(weights).reshape(pixel_shape)
     return out
 
 
-def _fuse_blocks(
-    parsed: ParsedFusionMode,
-    stacked: dict[str, Tensor],
-    glob: dict[str, Tensor] | None,
-    camera_origin: Tensor | None,
-    block_centres: Tensor | None,
-    gamma: float,
-    pixel_shape: torch.Size,
-) -> tuple[dict[str, Tensor], Tensor]:
-    """Fuse stacked ``[K, N, C]`` block values; returns (fused ``[N, C]`` per key, winner ``[N]``)."""
-    num_blocks, num_pixels = stacked["rgb"].shape[:2]
-    fallback = (lambda k: glob.get(k)) if glob is not None else (lambda k: None)
+def weights_winner(weights: Tensor) -> Tensor:
+    """``[K, N]`` fusion weights -> ``[N]`` int64 index of the largest weight (lowest on ties), ``-1``
+    where every weight is 0 (the pixel falls back to the global model)."""
+    winner = torch.argmax(weights, dim=0)
+    return torch.where((weights > 0).any(dim=0), winner, torch.full_like(winner, -1))
+
+
+def fusion_weights(
+    mode: str | ParsedFusionMode,
+    block_rgb: Tensor,
+    global_rgb: Tensor | None = None,
+    camera_origin: Tensor | None = None,
+    block_centres: Tensor | None = None,
+    gamma: float = 1.0,
+    block_scores: Tensor | None = None,
+    blocks_per_ray: int | None = None,
+) -> Tensor:
+    """``[K, N]`` per-pixel block weights of a fusion mode (one-hot for global / nearest / block).
+
+    Args:
+        mode: any mode but ``global-only``.
+        block_rgb: ``[K, N, 3]`` block colours; a block whose colour is NaN/inf at a pixel gets weight 0 there.
+        global_rgb: ``[N, 3]`` (``global``).
+        camera_origin: ``[3]`` or ``[N, 3]`` (``idw``, ``nearest``).
+        block_centres: ``[K, 3]`` (``idw``, ``nearest``).
+        gamma: IDW exponent (``idw``, ``surface``).
+        block_scores: ``[K, N]`` :func:`region_scores` (``surface``).
+        blocks_per_ray: ``surface``: the number of best-scoring usable blocks weighted per pixel.
+
+    Returns:
+        Weights summing to one per pixel, or all zero where no block is usable (use the global
+        model there). Apply with :func:`fuse_weighted`; :func:`weights_winner` gives the winner.
+    """
+    parsed = parse_fusion_mode(mode)
+    _check_block_values(block_rgb, "block_rgb")
+    num_blocks, num_pixels = block_rgb.shape[:2]
+    usable = torch.isfinite(block_rgb).all(dim=-1)  # [K, N]
+    if parsed.kind == "global-only":
+        raise ValueError("global-only fusion has no block weights")
+    if parsed.kind == "surface":
+        if block_scores is None or block_scores.shape != (num_blocks, num_pixels):
+            got = None if block_scores is None else list(block_scores.shape)
+            raise ValueError(f"surface fusion needs block_scores of shape [{num_blocks}, {num_pixels}], got {got}")
+        selected = select_blocks(block_scores, blocks_per_ray or num_blocks, usable.to(block_scores.device))
+        return score_weights(block_scores, selected, gamma).to(block_rgb.device)
     if parsed.kind == "global":
-        _, winner = fuse_global_guided(stacked["rgb"], glob["rgb"])  # type: ignore[index]
+        if global_rgb is None:
+            raise ValueError("global fusion needs the global model's colour")
+        _, winner = fuse_global_guided(block_rgb, global_rgb)
     elif parsed.kind == "block":
         parse_fusion_mode(parsed, num_blocks)
-        winner = torch.full((num_pixels,), int(parsed.block_index or 0), dtype=torch.long)
+        winner = torch.full((num_pixels,), int(parsed.block_index or 0), dtype=torch.long, device=block_rgb.device)
+        winner = torch.where(usable[int(parsed.block_index or 0)], winner, torch.full_like(winner, -1))
     else:
         if camera_origin is None or block_centres is None:
             raise ValueError(f"fusion mode {parsed.kind!r} needs camera_origin and block_centres")
         if block_centres.shape[0] != num_blocks:
             raise ValueError(f"{block_centres.shape[0]} block centres for {num_blocks} block outputs")
-        origins = _origins(camera_origin, pixel_shape)
         if parsed.kind == "idw":
-            weights = idw_weights(origins, block_centres, gamma)
-            fused = {k: fuse_weighted(v, weights, fallback(k)) for k, v in stacked.items()}
-            winner = _per_pixel(torch.argmax(weights, dim=0), num_pixels).to(stacked["rgb"].device)
-            return fused, winner
-        winner = _per_pixel(nearest_block(origins, block_centres), num_pixels)
-    winner = winner.to(stacked["rgb"].device)
-    return {k: select_winner(v, winner, fallback(k)) for k, v in stacked.items()}, winner
+            weights = idw_weights(camera_origin, block_centres, gamma, valid=usable if camera_origin.ndim == 2 else None)
+            weights = weights[:, None].expand(num_blocks, num_pixels) if weights.ndim == 1 else weights
+            weights = torch.where(usable.to(weights.device), weights, torch.zeros_like(weights))
+            total = weights.sum(dim=0, keepdim=True)
+            return torch.where(total > 0, weights / torch.where(total > 0, total, torch.ones_like(total)), torch.zeros_like(weights)).to(block_rgb.device)
+        origins = camera_origin if camera_origin.ndim == 2 else camera_origin[None].expand(num_pixels, 3)
+        winner = nearest_block(origins, block_centres, valid=usable.to(origins.device))
+    winner = _per_pixel(winner, num_pixels).to(block_rgb.device)
+    weights = torch.zeros(num_blocks, num_pixels, dtype=torch.float32, device=block_rgb.device)
+    hit = winner >= 0
+    weights[winner.clamp(min=0)[hit], torch.nonzero(hit).squeeze(-1)] = 1.0
+    return weights

@@ -25,7 +25,7 @@ from scalar_nerfstudio.blocks.plan import BlockPlan, PlanSettings, load_plan, pl
 from scalar_nerfstudio.blocks.split import BlockSplit, BlockSplitError, format_split_table, load_blocks_json
 from scalar_nerfstudio.data.datamanager import ScalarDataManagerConfig, camera_centres, camera_layout
 from scalar_nerfstudio.viewer import BlockOverlay, fusion_dropdown
-from scalar_nerfstudio.models.scene_model import DecoderMode, ScalarSceneModel, ScalarSceneModelConfig
+from scalar_nerfstudio.models.scene_model import BlockInit, DecoderMode, ScalarSceneModel, ScalarSceneModelConfig
 
 
 @dataclass(frozen=True)
@@ -91,6 +91,11 @@ class ScalarPipelineConfig(VanillaPipelineConfig):
     decoder_mode: DecoderMode = "finetune"
     """Local decoders: finetune a copy of the global decoder (its lr: --optimizers.block-decoder), keep
     it frozen, or train a fresh one (independent, the paper's "w/o SD" ablation)."""
+    block_init: BlockInit = "fresh"
+    """How a block's model starts: ``fresh``: the paper's, an empty table of its own size over the
+    block's region (only the decoder is copied, see decoder-mode); ``global``: a copy of the trained
+    global model (its frame, table, decoder, occupancy grid and its images' appearance embeddings),
+    fine-tuned on the block's images. (A run's config.yml from before this option loads as fresh.)"""
     train_blocks: bool = True
     """False: train the global phase only (blocks can then be trained with scalar-nerf-block)."""
     only_block: Optional[int] = None
@@ -114,6 +119,7 @@ class ScalarPipelineConfig(VanillaPipelineConfig):
             min_overlap_images=self.min_overlap_images, only_block=self.only_block,
             block_log2_hashmap_size=self.block_log2_hashmap_size, block_log2_hashmap_bounds=tuple(self.block_log2_hashmap_bounds),
             block_max_resolution=self.block_max_resolution, block_max_resolution_bounds=tuple(self.block_max_resolution_bounds),
+            global_max_resolution=self.model.field.max_resolution if self.block_init == "global" else None,
         )
 
     def automatic_num_blocks(self, scale: LayoutScale, num_images: int) -> int:
@@ -169,6 +175,7 @@ class ScalarPipeline(VanillaPipeline):
             block_ids=block_ids,
             block_capacities=self.plan.capacities,
             decoder_mode=config.decoder_mode,
+            block_init=config.block_init,
         )
         self.model.to(device)
         if config.global_checkpoint is not None:
@@ -314,7 +321,8 @@ class ScalarPipeline(VanillaPipeline):
                 + ("; one model suffices, no block is trained" if self.plan.single_model else "")
             )
         for index, capacity in self.block_capacities.items():
-            lines.append(f"block {index}: table 2^{capacity.log2_hashmap_size}, finest resolution {capacity.max_resolution}")
+            start = " (starts as a copy of the global model)" if self.config.block_init == "global" else ""
+            lines.append(f"block {index}: table 2^{capacity.log2_hashmap_size}, finest resolution {capacity.max_resolution}{start}")
         lines.append("phases: " + ", ".join(f"{p.name}: steps {p.start_step}-{p.end_step - 1}" for p in self.phases if p.num_steps > 0))
         return "\n".join(lines)
 

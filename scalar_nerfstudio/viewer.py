@@ -1,6 +1,6 @@
 """What scalar-nerf adds to nerfstudio's viser viewer.
 
-* a "Fusion" dropdown (global / idw / nearest / global-only / block:k) that switches how the
+* a "Fusion" dropdown (global / surface / idw / nearest / global-only / block:k) that switches how the
   rendered image is fused, live, during training and on a trained run;
 * the scene overlay: each block's scaled AABB as a wire box, and the training cameras as points
   coloured by block (a camera in several blocks takes its first block's colour);
@@ -19,7 +19,6 @@ from nerfstudio.viewer.viewer_elements import ViewerControl, ViewerDropdown
 
 from scalar_nerfstudio.blocks.palette import block_colour
 from scalar_nerfstudio.blocks.split import BlockSplit
-from scalar_nerfstudio.blocks.visibility import box_corners
 from scalar_nerfstudio.fusion import FUSION_MODES
 
 #: Scene node under which the overlay is drawn.
@@ -45,7 +44,8 @@ def fusion_dropdown(current: str, num_blocks: int, on_change: Callable[[str], No
 
 def box_edges(aabb_min: Sequence[float], aabb_max: Sequence[float]) -> np.ndarray:
     """[12, 2, 3] the edges of an axis-aligned box."""
-    corners = box_corners(aabb_min, aabb_max)  # corner i has bit a set where it is at the max on axis a
+    # corner i has bit a set where it is at the max on axis a
+    corners = np.array([[(aabb_max if (i >> a) & 1 else aabb_min)[a] for a in range(3)] for i in range(8)], dtype=np.float64)
     edges = [(i, i | (1 << a)) for i in range(8) for a in range(3) if not (i >> a) & 1]
     return np.stack([corners[[i, j]] for i, j in edges])
 

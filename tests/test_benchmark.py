@@ -109,3 +109,24 @@ def test_timing_helpers_time_steps_and_calls() -> None:
     calls = []
     assert median_seconds(lambda: calls.append(time.sleep(0.001)), repeats=3, warmup=2) >= 0.001
     assert len(calls) == 5
+
+
+def test_table_size_option_sets_every_table(tmp_path: Path) -> None:
+    config = BenchmarkConfig(data=tmp_path, log2_table=14, variants=("ngp19", "ngp21", "scalar"))
+    by_name = {v.name: v for v in plan(config)[0]}
+    assert by_name["ngp19"].overrides["pipeline.model.field.log2_hashmap_size"] == 14
+    assert by_name["ngp21"].overrides["pipeline.model.field.log2_hashmap_size"] == 16
+    assert by_name["scalar"].overrides["pipeline.block_log2_hashmap_size"] == 14
+    assert "global-only" in by_name["scalar"].fusions and "surface" in by_name["scalar"].fusions
+
+
+def test_equal_wall_clock_reads_the_one_model_curve_at_the_parallel_time() -> None:
+    from scalar_nerfstudio.benchmarking.report import equal_wall_clock, psnr_at
+
+    curve = [{"step": 100, "train_s": 10.0, "psnr": 18.0}, {"step": 200, "train_s": 20.0, "psnr": 20.0}]
+    assert psnr_at(curve, 15.0) == (19.0, 150.0)
+    assert psnr_at(curve, 20.0) == (20.0, 200.0)
+    assert psnr_at(curve, 5.0) is None and psnr_at(curve, 25.0) is None
+    table = [{"label": "SCALAR", "fusion": "global", "psnr": 21.0, "parallel_train_s": 15.0}, {"label": "NGP", "fusion": "global", "psnr": 20.0}]
+    lines = "\n".join(equal_wall_clock({"ngp19": {"curve": curve}}, table, log2_table=14))
+    assert "| SCALAR | global | 15 | 21.00 |" in lines and "NGP_14 (one model, 2^14) at the same wall-clock | - | 15 | 19.00 (step 150) |" in lines

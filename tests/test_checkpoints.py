@@ -104,3 +104,19 @@ def test_sigkilled_training_resumes_in_the_same_run(tmp_path: Path) -> None:
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     assert run_dirs(tmp_path) == [run], "the resumed run must continue in the same folder"
     assert latest_checkpoint_step(checkpoints) == killed_at + 3
+
+
+def test_finished_phases_drop_their_optimizer_moments(scene: Path, tmp_path: Path) -> None:
+    """Once a phase ends its groups never train again: their Adam moments leave memory and the checkpoints."""
+    from conftest import tiny_trainer
+
+    from scalar_nerfstudio.runs import checkpoint_name
+
+    trainer = tiny_trainer(scene, tmp_path, global_steps=12, block_steps=6)
+    trainer.train()
+    optimizers = trainer.optimizers.optimizers
+    assert optimizers["encoder"].state == {} and optimizers["block0.encoder"].state == {}  # the global phase and block 0 are done
+    assert optimizers["block1.encoder"].state  # the last phase keeps its moments (a resume could continue it)
+    last = latest_checkpoint_step(trainer.checkpoint_dir)
+    saved = torch.load(trainer.checkpoint_dir / checkpoint_name(last), map_location="cpu", weights_only=False)["optimizers"]
+    assert saved["encoder"]["state"] == {} and saved["block0.decoder"]["state"] == {} and saved["block1.encoder"]["state"]

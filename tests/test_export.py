@@ -275,7 +275,7 @@ def test_fused_normals_follow_the_fusion(scene: Path, tmp_path: Path) -> None:
             normals = _decoded(outputs)
             if mode == "global-only":
                 assert torch.allclose(outputs["normals"], model.global_model.render_rays(rays, normals=True)["normals"])
-            elif mode != "idw":
+            elif mode not in ("idw", "surface"):
                 winner = outputs["block_winner"].reshape(-1).long()
                 assert (winner >= 0).all()
                 expected = torch.stack([own[int(w)][i] for i, w in enumerate(winner)])

@@ -245,7 +245,7 @@ def test_float32_stays_float32_and_matches_float64_on_extreme_inputs(gamma: floa
 
 
 def test_parse_fusion_mode() -> None:
-    assert set(FUSION_MODES) == {"global", "idw", "nearest", "global-only"}
+    assert set(FUSION_MODES) == {"global", "surface", "idw", "nearest", "global-only"}
     for mode in FUSION_MODES:
         assert parse_fusion_mode(mode) == ParsedFusionMode(kind=mode)  # type: ignore[arg-type]
     assert parse_fusion_mode(" IDW ").kind == "idw"

@@ -6,12 +6,13 @@ from __future__ import annotations
 
 import copy
 import json
+import re
 import signal
 import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import List
+from typing import Dict, List, Tuple
 
 import numpy as np
 import psutil
@@ -160,6 +161,27 @@ def _ray_processes(since: float) -> List[str]:
     return left
 
 
+def _assert_block_1_retried_and_assembled(out: Path, tmp_path: Path) -> Tuple[Dict[int, Path], Path]:
+    """Block 1's killed first attempt is set aside, partial (no final checkpoint) and never used; its
+    second attempt and block 0's first finished; the assembled run holds both and evaluates.
+    Returns (the run of each block, the assembled run)."""
+    failed = out / "block1" / "failed-attempt-1"
+    (partial,) = [p.parent for p in failed.glob("*/scalar-nerf-block/*/config.yml")]
+    assert latest_checkpoint_step(partial / "nerfstudio_models") != BLOCK_STEPS - 1
+    runs = {block: _done_run(out, block) for block in (0, 1)}
+    assert "/block0/attempt-1/" in str(runs[0]) and "/block1/attempt-2/" in str(runs[1])
+    for run in runs.values():
+        assert latest_checkpoint_step(run / "nerfstudio_models") == BLOCK_STEPS - 1
+    (assembled,) = run_dirs(out / "assembled")
+    sources = json.loads((assembled / "assembled_from.json").read_text())["blocks"]
+    assert sources == {str(b): str(r.resolve()) for b, r in runs.items()}
+    assert _state(assembled)["_model.blocks_started"].tolist() == [True, True]
+    evaluation = ns_eval(assembled, tmp_path / "eval.json")
+    assert evaluation.returncode == 0, evaluation.stdout[-3000:] + evaluation.stderr[-3000:]
+    assert 5.0 < json.loads((tmp_path / "eval.json").read_text())["results"]["psnr"] < 60.0
+    return runs, assembled
+
+
 @pytest.mark.slow
 def test_ray_trains_blocks_in_parallel_retries_a_killed_one_and_fuses(global_run: Path, tmp_path: Path) -> None:
     """A real local Ray cluster with 2 CPUs trains the 2 blocks at once, one task each.
@@ -197,26 +219,11 @@ def test_ray_trains_blocks_in_parallel_retries_a_killed_one_and_fuses(global_run
     assert both_at_once, "the two blocks should train at the same time"
     assert "block 1: attempt 1 failed" in output and "kept apart" in output
 
-    # the killed attempt: set aside, partial (no final checkpoint), never used
-    failed = out / "block1" / "failed-attempt-1"
-    (partial,) = [p.parent for p in failed.glob("*/scalar-nerf-block/*/config.yml")]
-    assert latest_checkpoint_step(partial / "nerfstudio_models") != BLOCK_STEPS - 1
-    runs = {block: _done_run(out, block) for block in (0, 1)}
-    assert "/block0/attempt-1/" in str(runs[0]) and "/block1/attempt-2/" in str(runs[1])
-    for run in runs.values():
-        assert latest_checkpoint_step(run / "nerfstudio_models") == BLOCK_STEPS - 1
-
-    (assembled,) = run_dirs(out / "assembled")
-    sources = json.loads((assembled / "assembled_from.json").read_text())["blocks"]
-    assert sources == {str(b): str(r.resolve()) for b, r in runs.items()}
+    runs, assembled = _assert_block_1_retried_and_assembled(out, tmp_path)
     state = _state(assembled)
-    assert state["_model.blocks_started"].tolist() == [True, True]
     for block, run in runs.items():
         key = f"_model.blocks.{block}.field.encoder.table"
         assert torch.equal(state[key], _state(run)[key])
-    evaluation = ns_eval(assembled, tmp_path / "eval.json")
-    assert evaluation.returncode == 0, evaluation.stdout[-3000:] + evaluation.stderr[-3000:]
-    assert 5.0 < json.loads((tmp_path / "eval.json").read_text())["results"]["psnr"] < 60.0
 
     time.sleep(2)
     assert not _ray_processes(started), "the local Ray cluster must be shut down"
@@ -228,6 +235,84 @@ def test_ray_trains_blocks_in_parallel_retries_a_killed_one_and_fuses(global_run
     assert rerun.stdout.count("skipped (done before)") == 2 and "already assembled" in rerun.stdout
     assert ": attempt" not in rerun.stdout and "Ray cluster" not in rerun.stdout, "nothing is trained, Ray is not started"
     assert run_dirs(out / "assembled") == [assembled]
+
+
+def _ray_node(attempt_dir: Path) -> str:
+    """The Ray node id that an attempt's ``train.log`` names in its first line."""
+    header = (attempt_dir / "train.log").read_text().splitlines()[0]
+    match = re.search(r"Ray node ([0-9a-f]+),", header)
+    assert match, header
+    return match.group(1)
+
+
+@pytest.mark.slow
+def test_ray_cluster_of_two_nodes_retries_a_killed_block_on_the_other_node(global_run: Path, tmp_path: Path) -> None:
+    """A Ray cluster of several nodes on this machine (``ray.cluster_utils.Cluster``), joined with
+    ``--address``: the node running block 1's first attempt is lost, and block 1 is retried on the other.
+
+    - The head node has no CPUs; two worker nodes of 1 CPU each run one block at a time. The head
+      cannot be the node that is lost: it holds the GCS (the cluster's control plane), and no Ray
+      cluster survives losing it. With a 1-CPU head, Ray's scheduler, not the test, would choose
+      whether block 1 runs on the head, so the head runs no blocks (as on many real clusters).
+    - Once block 1's ``ns-train`` process has written its run folder, the test removes its node with
+      ``allow_graceful=False``: the node's raylet and agents are SIGKILLed, as when a machine is lost.
+      The Ray worker exits with its raylet and the block process with its worker. The command gets
+      a ``NodeDiedError`` within seconds, so nothing hangs.
+    - Each attempt's ``train.log`` names the Ray node it ran on, since every node here has the same
+      hostname. The test checks the node names there: the failed attempt on the lost node, the retry
+      on the surviving one.
+    """
+    cluster_utils = pytest.importorskip("ray.cluster_utils")
+    out = tmp_path / "blocks"
+    log_path = tmp_path / "command.log"
+    started = time.time()
+    cluster = cluster_utils.Cluster(initialize_head=True, head_node_args=dict(num_cpus=0, include_dashboard=False))
+    process = None
+    try:
+        workers = [cluster.add_node(num_cpus=1) for _ in range(2)]
+        command = ["scalar-nerf-train-blocks", str(global_run), "--executor", "ray", "--address", cluster.address,
+                   "--cpus-per-block", "1", "--block-steps", str(BLOCK_STEPS), "--output-dir", str(out),
+                   "--", "--steps-per-save", "4"]
+        with open(log_path, "w") as log:
+            process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, text=True)
+            lost = None
+            both_at_once = False
+            deadline = time.time() + 600
+            while process.poll() is None and time.time() < deadline and lost is None:
+                victims = _block_processes(out, 1, 1)
+                both_at_once = both_at_once or bool(victims and _block_processes(out, 0, 1))
+                if victims and list((out / "block1" / "attempt-1").glob("*/scalar-nerf-block/*/config.yml")):
+                    node_id = _ray_node(out / "block1" / "attempt-1")
+                    (lost,) = [node for node in workers if node.node_id == node_id]
+                    cluster.remove_node(lost, allow_graceful=False)
+                    gone, alive = psutil.wait_procs(victims, timeout=60)
+                    assert not alive, "the block process must die with its node"
+                time.sleep(0.05)
+            assert lost is not None, "block 1's first attempt was never seen running"
+            process.wait(timeout=600)
+    finally:
+        if process is not None and process.poll() is None:
+            process.kill()
+            process.wait()
+        cluster.shutdown()
+    seconds = time.time() - started
+    output = log_path.read_text()
+    assert process.returncode == 0, output[-5000:]
+    assert "Ray cluster at" in output and "3 node(s), 2 CPUs" in output, output[:2000]
+    assert both_at_once, "the two blocks should train at the same time, one on each node"
+    assert re.search(r"block 1: attempt 1 failed( \(Ray node \w+\))?: (NodeDiedError|WorkerCrashedError)", output), output[-5000:]
+    assert "kept apart" in output
+
+    (survivor,) = [node for node in workers if node is not lost]
+    failed = out / "block1" / "failed-attempt-1"
+    assert _ray_node(failed) == lost.node_id
+    assert _ray_node(out / "block1" / "attempt-2") == survivor.node_id, "the retry runs on the surviving node"
+    assert _ray_node(out / "block0" / "attempt-1") == survivor.node_id, "block 0 ran beside block 1, on the other node"
+    _assert_block_1_retried_and_assembled(out, tmp_path)
+
+    time.sleep(2)
+    assert not _ray_processes(started), "every node of the cluster must be shut down"
+    print(f"ray cluster of 2 worker nodes: 2 blocks of {BLOCK_STEPS} steps, node lost, block 1 retried, in {seconds:.0f} s")
 
 
 @pytest.mark.slow

@@ -15,7 +15,6 @@ import pytest
 import torch
 
 from conftest import NUM_BLOCKS, free_port
-from scalar_nerfstudio.blocks.visibility import aabb_in_frustum
 from scalar_nerfstudio.blocks.palette import BLOCK_PALETTE, block_colour
 from scalar_nerfstudio.blocks.split import split_cameras
 from scalar_nerfstudio.viewer import BlockOverlay, box_edges, fusion_options
@@ -28,7 +27,7 @@ CHROMEDRIVER = shutil.which("chromedriver")
 
 
 def test_fusion_options_list_modes_and_blocks() -> None:
-    assert fusion_options(2) == ["global", "idw", "nearest", "global-only", "block:0", "block:1"]
+    assert fusion_options(2) == ["global", "surface", "idw", "nearest", "global-only", "block:0", "block:1"]
 
 
 def test_box_edges_are_the_twelve_unit_edges() -> None:
@@ -87,31 +86,6 @@ def test_block_overlay_keeps_its_scene_nodes_to_hide_restyle_and_remove() -> Non
     drawn = overlay.handles
     overlay.remove()
     assert overlay.handles == [] and all(node.removed for node in drawn)
-
-
-def _camera_looking_down_minus_z() -> np.ndarray:
-    return np.concatenate([np.eye(3), np.zeros((3, 1))], axis=1)
-
-
-@pytest.mark.parametrize(
-    ("box", "visible"),
-    [
-        (((-1, -1, -6), (1, 1, -4)), True),      # straight ahead
-        (((-1, -1, 4), (1, 1, 6)), False),       # behind the camera
-        (((40, -1, -6), (42, 1, -4)), False),    # far to the right, outside the frustum
-        (((-1, -1, -1), (1, 1, 1)), True),       # the camera is inside the box
-        (((-100, -1, -6), (100, 1, -4)), True),  # spans the view although no corner is inside it
-    ],
-)
-def test_frustum_test(box, visible: bool) -> None:
-    pose = _camera_looking_down_minus_z()
-    assert aabb_in_frustum(pose, 100.0, 100.0, 50.0, 40.0, 100.0, 80.0, *box) is visible
-
-
-def test_frustum_test_keeps_blocks_for_non_finite_poses() -> None:
-    pose = _camera_looking_down_minus_z()
-    pose[0, 3] = float("nan")
-    assert aabb_in_frustum(pose, 100.0, 100.0, 50.0, 40.0, 100.0, 80.0, (-1, -1, 4), (1, 1, 6))
 
 
 # --------------------------------------------------------------------- the trained run
@@ -284,8 +258,9 @@ def test_eval_fusion_table_has_every_mode(full_run: Path, tmp_path: Path) -> Non
     )
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     table = json.loads((tmp_path / "fusion.json").read_text())
-    for mode in ("global", "idw", "nearest", "global-only"):
+    for mode in ("global", "surface", "idw", "nearest", "global-only"):
         assert 5.0 < table[mode]["psnr"] < 60.0 and 0.0 < table[mode]["ssim"] <= 1.0 and table[mode]["ms_per_image"] > 0
-    assert table["skipping"]["num_images"] == table["global"]["num_images"] > 0
+    for mode in ("global", "surface", "idw"):
+        assert table["selection:" + mode]["num_images"] == table[mode]["num_images"] > 0
     markdown = (tmp_path / "fusion.md").read_text()
     assert "| global |" in markdown and "| idw |" in markdown

@@ -18,17 +18,24 @@ from scalar_nerfstudio.atomic_io import atomic_write_text
 from scalar_nerfstudio.benchmarking.variants import BenchmarkConfig
 
 __all__ = [
-    "LABELS", "describe_machine", "markdown", "on_pareto_front", "plots", "results_table_text", "rewrite_report",
-    "rows", "write_report",
+    "LABELS", "describe_machine", "equal_wall_clock", "labels", "markdown", "on_pareto_front", "plots", "psnr_at",
+    "results_table_text", "rewrite_report", "rows", "write_report",
 ]
 
-#: Rows of the report: (variant, fusion) -> label.
+#: Rows of the report at the paper's T = 19: (variant, fusion) -> label (see :func:`labels`).
 LABELS: Dict[Tuple[str, str], str] = {
     ("ngp19", "global"): "NGP_19 (one model, 2^19)",
     ("ngp21", "global"): "NGP_21 (one model, 2^21)",
     ("scalar", "global"): "SCALAR-NeRF (blocks + global fusion)",
+    ("scalar", "surface"): "blocks + surface fusion (same models)",
     ("scalar", "idw"): "blocks + IDW (same models)",
     ("scalar", "nearest"): "blocks + nearest (same models)",
+    ("scalar", "global-only"): "its global model alone",
+    ("scalar-init-global", "global"): "SCALAR-NeRF, blocks start as the global model",
+    ("scalar-init-global", "surface"): "blocks start as the global model + surface fusion",
+    ("scalar-init-global", "idw"): "blocks start as the global model + IDW",
+    ("scalar-init-global", "nearest"): "blocks start as the global model + nearest",
+    ("scalar-init-global", "global-only"): "its global model alone",
     ("scalar-wo-sd", "global"): "SCALAR-NeRF w/o SD (independent decoders)",
     ("scalar-wo-sd", "idw"): "Block-NeRF-style (independent blocks + IDW)",
     ("scalar-wo-ft", "global"): "SCALAR-NeRF w/o FT (frozen decoder)",
@@ -39,23 +46,32 @@ LABELS: Dict[Tuple[str, str], str] = {
 }
 
 
-def rows(results: Dict[str, Dict[str, Any]], notes: Optional[Dict[str, str]] = None) -> List[Dict[str, Any]]:
+def labels(log2_table: int = 19) -> Dict[Tuple[str, str], str]:
+    """:data:`LABELS` for tables of 2^``log2_table`` (NGP_T and NGP_{T+2})."""
+    out = dict(LABELS)
+    out[("ngp19", "global")] = f"NGP_{log2_table} (one model, 2^{log2_table})"
+    out[("ngp21", "global")] = f"NGP_{log2_table + 2} (one model, 2^{log2_table + 2})"
+    return out
+
+
+def rows(results: Dict[str, Dict[str, Any]], notes: Optional[Dict[str, str]] = None, log2_table: int = 19) -> List[Dict[str, Any]]:
     """One row per (variant, fusion): label, time, metrics, parameters, memory."""
-    labels = dict(LABELS)
+    labels_ = labels(log2_table)
     if notes and "auto" in notes and "auto" not in results:  # automatic K = 1: the ngp19 run is it
-        labels[("ngp19", "global")] += " = automatic K and capacity"
+        labels_[("ngp19", "global")] += " = automatic K and capacity"
     out = []
     for name, result in results.items():
         if name == "global":
             continue
         for fusion, metrics in (result.get("fusions") or {"global": result["final"]}).items():
-            fusion_key = "global" if fusion in ("global", "global-only") else fusion
+            fusion_key = "global" if fusion == "global-only" and (name, fusion) not in labels_ else fusion
             out.append({
-                "variant": name, "fusion": fusion, "label": labels.get((name, fusion_key), f"{name} ({fusion})"),
+                "variant": name, "fusion": fusion, "label": labels_.get((name, fusion_key), f"{name} ({fusion})"),
                 "steps": result["steps"], "train_s": result["train_s"], "train_rays_per_s": result["train_rays_per_s"],
                 "psnr": metrics["psnr"], "ssim": metrics["ssim"], "lpips": metrics.get("lpips"),
                 "render_ms_per_image": metrics["render_ms_per_image"], "parameters": result["parameters"],
                 "peak_rss_mib": result["peak_rss_mib"], "num_blocks": result.get("num_blocks"),
+                "parallel_train_s": result.get("parallel_train_s"),
             })
     for row in out:
         row["pareto_parameters"] = on_pareto_front(row, out, "parameters")
@@ -72,7 +88,46 @@ def on_pareto_front(row: Dict[str, Any], all_rows: List[Dict[str, Any]], cost: s
     )
 
 
-def markdown(config: BenchmarkConfig, table: List[Dict[str, Any]], notes: Dict[str, str], command: str, machine: str) -> str:
+def psnr_at(curve: List[Dict[str, float]], seconds: float) -> Optional[Tuple[float, float]]:
+    """(PSNR, step) of a training curve at ``seconds`` of training, linearly interpolated between its
+    evaluations; None before the first evaluation or after the last."""
+    points = sorted(curve, key=lambda p: p["train_s"])
+    for before, after in zip(points, points[1:]):
+        if before["train_s"] <= seconds <= after["train_s"]:
+            span = max(after["train_s"] - before["train_s"], 1e-9)
+            share = (seconds - before["train_s"]) / span
+            return (before["psnr"] + share * (after["psnr"] - before["psnr"]), before["step"] + share * (after["step"] - before["step"]))
+    if points and abs(points[-1]["train_s"] - seconds) < 1e-9:
+        return points[-1]["psnr"], points[-1]["step"]
+    return None
+
+
+def equal_wall_clock(results: Dict[str, Dict[str, Any]], table: List[Dict[str, Any]], log2_table: int = 19) -> List[str]:
+    """Markdown lines: each block variant's PSNR with its K blocks trained in parallel, against the one-model
+    runs (NGP curves) at the same wall-clock."""
+    parallel = [r for r in table if r.get("parallel_train_s")]
+    if not parallel:
+        return []
+    names = labels(log2_table)
+    lines = ["", "## Equal wall-clock, K blocks on K workers", "",
+             "A block variant's time here is its global phase plus one block's (the K blocks trained at once, as "
+             "`scalar-nerf-train-blocks` does); each one-model run is read off its PSNR curve at that time.", "",
+             "| model | fusion | wall-clock s | PSNR |", "|---|---|---|---|"]
+    times = sorted({round(r["parallel_train_s"], 1) for r in parallel})
+    for r in sorted(parallel, key=lambda r: -r["psnr"]):
+        lines.append(f"| {r['label']} | {r['fusion']} | {r['parallel_train_s']:.0f} | {r['psnr']:.2f} |")
+    for name in ("ngp19", "ngp21"):
+        if name not in results:
+            continue
+        for seconds in times:
+            found = psnr_at(results[name]["curve"], seconds)
+            cell = f"{found[0]:.2f} (step {found[1]:.0f})" if found else "no evaluation at that time"
+            lines.append(f"| {names[(name, 'global')]} at the same wall-clock | - | {seconds:.0f} | {cell} |")
+    return lines
+
+
+def markdown(config: BenchmarkConfig, table: List[Dict[str, Any]], notes: Dict[str, str], command: str, machine: str,
+             results: Optional[Dict[str, Dict[str, Any]]] = None) -> str:
     total = config.global_steps + config.num_blocks * config.block_steps
     lines = [
         f"# Speed against error: {config.data.name if config.data else 'synthetic'} (downscale {config.downscale})",
@@ -95,12 +150,13 @@ def markdown(config: BenchmarkConfig, table: List[Dict[str, Any]], notes: Dict[s
         )
     if notes:
         lines += ["", *[f"- {name}: {note}" for name, note in notes.items()]]
+    lines += equal_wall_clock(results or {}, table, config.log2_table)
     lines += ["", "![PSNR vs training time](psnr_vs_time.png)", "", "![PSNR vs render time](psnr_vs_render_time.png)", "",
               "![PSNR vs parameters](psnr_vs_parameters.png)", ""]
     return "\n".join(lines)
 
 
-def plots(results: Dict[str, Dict[str, Any]], table: List[Dict[str, Any]], output_dir: Path) -> List[Path]:
+def plots(results: Dict[str, Dict[str, Any]], table: List[Dict[str, Any]], output_dir: Path, log2_table: int = 19) -> List[Path]:
     """PSNR vs training time (curves), vs render time and vs parameters (points): three PNGs."""
     import matplotlib
 
@@ -113,7 +169,7 @@ def plots(results: Dict[str, Dict[str, Any]], table: List[Dict[str, Any]], outpu
         curve = result["curve"]
         if curve:
             axes.plot([p["train_s"] / 60 for p in curve], [p["psnr"] for p in curve], marker="o", markersize=3,
-                      label=LABELS.get((name, "global"), name), linestyle="--" if name == "global" else "-")
+                      label=labels(log2_table).get((name, "global"), name), linestyle="--" if name == "global" else "-")
     axes.set_xlabel("training time (min, evaluation excluded)")
     axes.set_ylabel("eval PSNR (dB)")
     axes.grid(alpha=0.3)
@@ -152,14 +208,14 @@ def describe_machine() -> str:
 def _write(output_dir: Path, config: BenchmarkConfig, report: Dict[str, Any]) -> None:
     """results.json, results.md and the plots of ``report``."""
     atomic_write_text(output_dir / "results.json", json.dumps(report, indent=2))
-    atomic_write_text(output_dir / "results.md", markdown(config, report["rows"], report["notes"], report["command"], report["machine"]))
-    plots(report["results"], report["rows"], output_dir)
+    atomic_write_text(output_dir / "results.md", markdown(config, report["rows"], report["notes"], report["command"], report["machine"], report["results"]))
+    plots(report["results"], report["rows"], output_dir, config.log2_table)
 
 
 def write_report(config: BenchmarkConfig, results: Dict[str, Dict[str, Any]], notes: Dict[str, str], command: str, started: float) -> Dict[str, Any]:
     """The report of a benchmark run (``started``: ``time.time()`` when its variants started), written
     to ``config.output_dir``; returns it."""
-    table = rows(results, notes)
+    table = rows(results, notes, config.log2_table)
     machine = describe_machine()
     report = {
         "command": command, "machine": machine, "config": {k: str(v) if isinstance(v, Path) else v for k, v in asdict(config).items()},
@@ -179,7 +235,7 @@ def rewrite_report(output_dir: Path) -> Dict[str, Any]:
     config = BenchmarkConfig(**{k: v for k, v in saved.items() if k in BenchmarkConfig.__dataclass_fields__})
     config.data = Path(saved["data"]) if saved.get("data") not in (None, "None") else None
     config.output_dir = output_dir
-    report["rows"] = rows(report["results"], report["notes"])
+    report["rows"] = rows(report["results"], report["notes"], config.log2_table)
     _write(output_dir, config, report)
     return report
 

@@ -94,6 +94,8 @@ def run_variant(config: BenchmarkConfig, variant: Variant, runs: Path, results: 
         offset_s, offset_steps = base["train_s"], base["steps"]
         result["curve"] = base["curve"] + [{**p, "train_s": p["train_s"] + offset_s, "step": p["step"] + offset_steps} for p in result["curve"]]
         rays = result["train_rays_per_s"] * result["train_s"] + base["train_rays_per_s"] * offset_s
+        # K workers train the K blocks at once (scalar-nerf-train-blocks): the global phase, then one block's time.
+        result["parallel_train_s"] = offset_s + result["train_s"] / max(int(result.get("num_blocks") or 1), 1)
         result["train_s"] += offset_s
         result["steps"] += offset_steps
         result["train_rays_per_s"] = rays / max(result["train_s"], 1e-9)

@@ -2,11 +2,15 @@
 
 Variants (same scene, same machine, same run; each trains in its own process):
 
-* ``ngp19`` / ``ngp21``: one model (the paper's NGP_19 / NGP_21), ``G + K B`` steps, table 2^19 / 2^21.
-* ``global``: the SCALAR-NeRF global phase (``G`` steps, table 2^19). The block variants below all
+* ``ngp19`` / ``ngp21``: one model (the paper's NGP_T / NGP_{T+2}), ``G + K B`` steps, table 2^T / 2^(T+2)
+  (``--log2-table T``, default 19; the variant names keep the paper's default T).
+* ``global``: the SCALAR-NeRF global phase (``G`` steps, table 2^T). The block variants below all
   start from this one trained global model (its time is counted in theirs), as in the paper.
-* ``scalar``: K blocks of ``B`` steps each, fine-tuned decoders, s_AABB = 1.2, tables 2^19; evaluated
-  with ``global`` fusion (SCALAR-NeRF), ``idw`` and ``nearest`` (the same models, other fusions).
+* ``scalar``: K blocks of ``B`` steps each, fine-tuned decoders, s_AABB = 1.2, tables 2^T; evaluated
+  with ``global`` fusion (SCALAR-NeRF), ``surface``, ``idw``, ``nearest`` and ``global-only`` (the same
+  models, other fusions; ``global-only`` is the global model alone).
+* ``scalar-init-global``: as ``scalar``, but every block starts as a copy of the global model
+  (``--pipeline.block-init global``: its frame, table, occupancy grid, appearance) and fine-tunes it.
 * ``scalar-wo-sd``: independent decoders (the paper's "w/o SD"); evaluated with ``global`` fusion and
   with ``idw``, which is Block-NeRF's recipe (independent blocks + inverse distance weighting).
 * ``scalar-wo-ft``: frozen copies of the global decoder ("w/o FT").
@@ -17,7 +21,9 @@ Variants (same scene, same machine, same run; each trains in its own process):
   Its LPIPS needs downloaded AlexNet weights, so it is not computed for nerfacto.
 
 Equal budgets: every SCALAR/NGP variant trains ``G + K B`` steps of the same ray batch; nerfacto
-trains for the same wall-clock as ``scalar`` (set when the schedule gets to it).
+trains for the same wall-clock as ``scalar`` (set when the schedule gets to it). The report also
+compares at equal wall-clock with K workers: a block variant's time with its blocks trained in
+parallel (``G``'s time + one block's) against the NGP curves at that time.
 """
 
 from __future__ import annotations
@@ -29,7 +35,7 @@ from typing import Any, Dict, List, Optional, Tuple
 __all__ = ["VARIANTS", "BenchmarkConfig", "Variant", "auto_k", "plan", "use_quick_budgets"]
 
 VARIANTS: Tuple[str, ...] = (
-    "ngp19", "ngp21", "scalar", "scalar-wo-sd", "scalar-wo-ft", "scalar-s1.0", "scalar-autocap", "auto", "nerfacto",
+    "ngp19", "ngp21", "scalar", "scalar-init-global", "scalar-wo-sd", "scalar-wo-ft", "scalar-s1.0", "scalar-autocap", "auto", "nerfacto",
 )
 
 
@@ -49,6 +55,8 @@ class BenchmarkConfig:
     """B: steps of each block."""
     num_blocks: int = 4
     """K of the fixed-K variants."""
+    log2_table: int = 19
+    """T: log2 table size of NGP_T, of the global model and of every fixed-table block; NGP_{T+2} has 4x."""
     rays_per_batch: int = 2048
     """Training rays per step (every variant)."""
     eval_every: int = 200
@@ -87,7 +95,7 @@ def _tables(config: BenchmarkConfig) -> Tuple[int, int, Dict[str, Any]]:
             "pipeline.model.field.max_resolution": 256, "pipeline.model.num_samples_per_ray": 32,
             "pipeline.model.occupancy_warmup_steps": 8,
         }
-    return 19, 21, {}
+    return config.log2_table, config.log2_table + 2, {}
 
 
 def auto_k(config: BenchmarkConfig, log2_t: int) -> int:
@@ -127,7 +135,10 @@ def plan(config: BenchmarkConfig) -> Tuple[List[Variant], Dict[str, str]]:
         elif name == "ngp21":
             out.append(Variant(name, "scalar-nerf", {**single, "pipeline.model.field.log2_hashmap_size": log2_21}))
         elif name == "scalar":
-            out.append(Variant(name, "scalar-nerf", {**blocks, **fixed_tables}, ["global", "idw", "nearest"], base="global"))
+            out.append(Variant(name, "scalar-nerf", {**blocks, **fixed_tables}, ["global", "surface", "idw", "nearest", "global-only"], base="global"))
+        elif name == "scalar-init-global":
+            out.append(Variant(name, "scalar-nerf", {**blocks, **fixed_tables, "pipeline.block_init": "global"},
+                               ["global", "surface", "global-only"], base="global"))
         elif name == "scalar-wo-sd":
             out.append(Variant(name, "scalar-nerf", {**blocks, **fixed_tables, "pipeline.decoder_mode": "independent"}, ["global", "idw"], base="global"))
         elif name == "scalar-wo-ft":

@@ -48,6 +48,9 @@ class PlanSettings:
     block_log2_hashmap_bounds: Tuple[int, int] = (14, 19)
     block_max_resolution: Optional[int] = None
     block_max_resolution_bounds: Tuple[int, int] = (64, 2048)
+    global_max_resolution: Optional[int] = None
+    """The global model's finest resolution; given: every block copies the global model's table size
+    and finest resolution (``--pipeline.block-init global``) instead of sizing its own."""
 
 
 @dataclass(frozen=True)
@@ -123,6 +126,9 @@ def plan_blocks(
     held = () if auto == 1 else _held_blocks(split, settings.only_block)
     capacities = {}
     for index in held:
+        if settings.global_max_resolution is not None:  # blocks start as copies of the global model
+            capacities[index] = BlockCapacity(log2_hashmap_size=settings.log2_hashmap_size, max_resolution=settings.global_max_resolution)
+            continue
         block = split.blocks[index]
         extent = max(hi - lo for lo, hi in zip(block.aabb_min, block.aabb_max))
         chosen = block_capacity(

@@ -44,6 +44,8 @@ class AttemptResult:
     seconds: float
     error: str = ""
     host: str = ""
+    node: str = ""
+    """The Ray node id of the worker that ran it (hex); "" outside Ray."""
 
 
 def thread_env(cpus: int, gpus: float, set_devices: Optional[str] = None) -> Dict[str, str]:
@@ -67,6 +69,20 @@ def _die_with_parent() -> None:  # pragma: no cover - runs in the forked child
         pass
 
 
+def ray_node_id() -> str:
+    """The id (hex) of the Ray node this process runs on when it is a Ray worker, else "".
+
+    Several Ray nodes can share one host (and its hostname), so the node id says where an attempt ran.
+    """
+    ray = sys.modules.get("ray")  # never imported here: outside a Ray worker, Ray is not used
+    if ray is None or not ray.is_initialized():
+        return ""
+    try:
+        return str(ray.get_runtime_context().get_node_id())
+    except Exception:
+        return ""
+
+
 def run_attempt(job: AttemptJob) -> AttemptResult:
     """Run one block attempt: ``ns-train scalar-nerf-block ...`` with its log in the attempt folder.
 
@@ -78,14 +94,16 @@ def run_attempt(job: AttemptJob) -> AttemptResult:
     folder = Path(job.folder)
     command = [sys.executable, "-m", "nerfstudio.scripts.train", *job.args]
     start = time.time()
+    host, node = socket.gethostname(), ray_node_id()
     with open(folder / LOG_NAME, "w") as log:
         overrides = " ".join(f"{k}={shlex.quote(v)}" for k, v in sorted(job.env.items()))
-        log.write(f"# host {socket.gethostname()}, attempt {job.attempt} of block {job.block}\n# {overrides} {shlex.join(command)}\n")
+        where = f"host {host}, Ray node {node}" if node else f"host {host}"
+        log.write(f"# {where}, attempt {job.attempt} of block {job.block}\n# {overrides} {shlex.join(command)}\n")
         log.flush()
         process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, cwd=folder,
                                    env={**os.environ, **job.env}, preexec_fn=_die_with_parent)
         returncode = process.wait()
-    return AttemptResult(returncode, time.time() - start, host=socket.gethostname())
+    return AttemptResult(returncode, time.time() - start, host=host, node=node)
 
 
 def require_ray() -> None:

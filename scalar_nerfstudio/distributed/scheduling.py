@@ -124,12 +124,14 @@ def train_pending(resources: Resources, global_run: GlobalRun, states: Dict[int,
                 if run is not None:
                     write_done(state.folder, run, attempt_number(attempt_dir), result.seconds, global_run.global_checkpoint)
                     state.status, state.run = "done", run
-                    print(f"block {state.block}: done in {result.seconds:.1f} s ({run})", flush=True)
+                    where = f" on Ray node {result.node[:12]}" if result.node else ""
+                    print(f"block {state.block}: done in {result.seconds:.1f} s{where} ({run})", flush=True)
                     continue
                 why = why.rstrip(".")
                 failed_dir = set_aside(attempt_dir, "failed")
                 state.failures.append(f"attempt {state.attempts}: {why} (log: {failed_dir / LOG_NAME})")
-                print(f"block {state.block}: attempt {state.attempts} failed: {why}; kept apart in {failed_dir}", flush=True)
+                where = f" (Ray node {result.node[:12]})" if result.node else ""
+                print(f"block {state.block}: attempt {state.attempts} failed{where}: {why}; kept apart in {failed_dir}", flush=True)
                 if state.attempts <= max_retries:
                     submit(state)
                 else:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable, Dict, Literal, Optional, Type
+from typing import Any, Callable, Dict, List, Literal, Optional, Type
 
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 from nerfstudio.engine.optimizers import Optimizers
@@ -21,6 +21,7 @@ from scalar_nerfstudio.engine.device import resolve_machine
 from scalar_nerfstudio.engine.preview import write_preview
 from scalar_nerfstudio.engine.report import format_report, scene_model_report, write_report
 from scalar_nerfstudio.engine.schedulers import WarmupExponentialDecaySchedulerConfig
+from scalar_nerfstudio.engine.threads import ThreadGovernor
 from scalar_nerfstudio.runs import (
     RunError,
     atomic_torch_save,
@@ -43,6 +44,10 @@ class ScalarTrainerConfig(TrainerConfig):
     steps_per_preview: int = 500
     """Every this many steps, and at the last step, render the first eval view beside its ground truth
     into RUN/preview.png (and RUN/previews/step-N.png) and log its PSNR; 0: never."""
+    adapt_threads: bool = True
+    """CPU training: every few seconds, use as many threads as there are cores not busy with other
+    processes (two trainings on 2 cores then take 1 thread each instead of spin-waiting on each other);
+    off, or OMP_NUM_THREADS set: torch's thread count is left alone."""
 
     def set_timestamp(self) -> None:
         """Check the options and the scene, then resume into the run folder that ``load_dir`` belongs
@@ -121,6 +126,7 @@ class ScalarTrainer(Trainer):
     def __init__(self, config: ScalarTrainerConfig, local_rank: int = 0, world_size: int = 1) -> None:
         resolve_machine(config)  # device "auto" and mixed precision (CUDA only), before nerfstudio reads them
         super().__init__(config, local_rank, world_size)
+        self.thread_governor = ThreadGovernor(enabled=config.adapt_threads and config.machine.device_type == "cpu")
 
     def setup(self, test_mode: Literal["test", "val", "inference"] = "val") -> None:
         super().setup(test_mode=test_mode)
@@ -177,15 +183,31 @@ class ScalarTrainer(Trainer):
 
     def train_iteration(self, step: int):
         """One step; a checkpoint is also written at the end of every phase, a preview every
-        ``steps_per_preview`` steps and at the last step."""
+        ``steps_per_preview`` steps and at the last step. Torch's thread count follows the free cores
+        (``adapt_threads``)."""
+        self.thread_governor.update()
         result = super().train_iteration(step)
         every = self.config.steps_per_preview
         if every > 0 and ((step + 1) % every == 0 or step + 1 == self._total_steps):
             path, psnr = write_preview(self.pipeline, self.base_dir, step)
             CONSOLE.print(f"step {step + 1}: preview (render | ground truth, eval view 0, {psnr:.2f} dB) written to {path}")
         if step + 1 == self.phased_pipeline.phase_at(step).end_step and step + 1 < self._total_steps:
+            self.release_finished_optimizer_state(step + 1)
             self.save_checkpoint(step)
         return result
+
+    def release_finished_optimizer_state(self, steps_done: int) -> List[str]:
+        """Drop the Adam moments of the parameter groups whose phase has ended after ``steps_done``
+        steps (the global model's once the blocks train, each finished block's): they never train
+        again, and their moments (2x their parameters) would stay in memory and in every later
+        checkpoint. Returns the groups released."""
+        released = []
+        for group, (_, phase) in self.phased_pipeline.param_group_phases().items():
+            optimizer = self.optimizers.optimizers.get(group)
+            if phase is not None and phase.end_step <= steps_done and optimizer is not None and optimizer.state:
+                optimizer.state.clear()
+                released.append(group)
+        return released
 
     def _load_checkpoint(self) -> None:
         """Resume from the newest complete checkpoint; ignores anything that is not ``step-N.ckpt``."""
@@ -206,6 +228,7 @@ class ScalarTrainer(Trainer):
         total = self.config.max_num_iterations
         self._total_steps = total
         self.step = max(self._start_step - 1, 0)
+        self.release_finished_optimizer_state(self._start_step)  # a resumed run's finished phases
         self.config.max_num_iterations = max(total - self._start_step, 0)
         try:
             super().train()

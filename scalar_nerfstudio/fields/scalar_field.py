@@ -45,6 +45,18 @@ def contract_to_unit_cube(positions: Tensor) -> Tensor:
     return (contract(positions) / 4.0 + 0.5).clamp(0.0, 1.0)
 
 
+def unit_cube_to_world(unit_positions: Tensor) -> Tensor:
+    """Inverse of :func:`contract_to_unit_cube`: [N, 3] in [0, 1]^3 -> [N, 3] world positions.
+
+    Points of the cube outside the contracted ball (its corners) and its boundary sphere (infinity)
+    map to radius ``1 / (2 - 1.999)`` = 1000 in their direction, so every result is finite.
+    """
+    contracted = (unit_positions.clamp(0.0, 1.0) - 0.5) * 4.0
+    norm = torch.linalg.vector_norm(contracted, dim=-1, keepdim=True)
+    radius = 1.0 / (2.0 - norm.clamp(1.0, 1.999))
+    return torch.where(norm <= 1.0, contracted, contracted / norm.clamp_min(1.0) * radius)
+
+
 def encode_with_position_gradients(encoder: HashGridEncoding, positions: Tensor) -> Tensor:
     """The hash-grid encoding of ``encoder``, differentiable with respect to the positions.
 

@@ -85,6 +85,9 @@ class OccupancyGrid(nn.Module):
         self.register_buffer("density_ema", torch.full((num_cells,), float("inf")))
         self.register_buffer("occupied", torch.ones(num_cells, dtype=torch.bool))
         self.register_buffer("cell_sizes", world_scale * self._world_cell_sizes(resolution), persistent=False)
+        # Seeded from another model's density (a block from the global model): no warm-up. Not saved
+        # (checkpoints of older runs load): a resumed grid keeps its saved cells through a warm-up.
+        self.register_buffer("seeded", torch.zeros((), dtype=torch.bool), persistent=False)
 
     @staticmethod
     def _world_cell_sizes(resolution: int) -> Tensor:
@@ -94,11 +97,36 @@ class OccupancyGrid(nn.Module):
         world_radius = torch.where(contracted_radius <= 1.0, torch.ones_like(contracted_radius), 1.0 / (2.0 - contracted_radius))
         return (4.0 / resolution) * world_radius**2
 
+    def cell_centres(self) -> Tensor:
+        """[G^3, 3] centres of the cells in the contracted unit cube, in flat cell order."""
+        g = self.resolution
+        cells = torch.arange(g**3, device=self.density_ema.device)
+        return (torch.stack([cells // (g * g), (cells // g) % g, cells % g], dim=-1).float() + 0.5) / g
+
+    @torch.no_grad()
+    def seed(self, densities: Tensor) -> None:
+        """Start from known densities ``[G^3]`` (1 / world unit) at :meth:`cell_centres` instead of a
+        warm-up: cells are marked at once and later updates are partial, as after the warm-up. The
+        estimates decay as the model's own densities come in."""
+        if densities.shape != self.density_ema.shape:
+            raise ValueError(f"seed densities must have shape {list(self.density_ema.shape)}, got {list(densities.shape)}")
+        self.density_ema.copy_(torch.nan_to_num(densities.float(), nan=0.0, posinf=1e6).clamp_min(0.0))
+        opacities = 1.0 - torch.exp(-(self.density_ema * self.cell_sizes).clamp(max=50.0))
+        self.occupied.copy_(opacities > min(self.opacity_threshold, float(opacities.mean())))
+        self.seeded.fill_(True)
+
     def cell_indices(self, unit_positions: Tensor) -> Tensor:
         """[M, 3] positions in the contracted unit cube -> [M] flat cell indices (always in range)."""
         g = self.resolution
         cells = (torch.nan_to_num(unit_positions, nan=0.0) * g).long().clamp(0, g - 1)
         return cells[:, 0] * (g * g) + cells[:, 1] * g + cells[:, 2]
+
+    def density_estimates(self, unit_positions: Tensor) -> Tensor:
+        """[M, 3] contracted unit-cube positions -> [M] float32 density estimates of their cells
+        (0 in cells marked empty or never evaluated)."""
+        cells = self.cell_indices(unit_positions)
+        estimates = torch.where(self.occupied, self.density_ema, torch.zeros_like(self.density_ema))
+        return torch.nan_to_num(estimates, nan=0.0, posinf=0.0)[cells]
 
     def is_occupied(self, unit_positions: Tensor) -> Tensor:
         """[M, 3] contracted unit-cube positions -> [M] bool."""
@@ -126,7 +154,8 @@ class OccupancyGrid(nn.Module):
         g = self.resolution
         device = self.density_ema.device
         num_cells = g**3
-        if step < self.warmup_steps:
+        warming_up = step < self.warmup_steps and not bool(self.seeded)
+        if warming_up:
             cells = torch.arange(num_cells, device=device)
         else:
             cells = torch.randint(0, num_cells, (num_cells // 4,), device=device)
@@ -138,5 +167,5 @@ class OccupancyGrid(nn.Module):
         self.density_ema[cells] = torch.maximum(decayed, densities)
         opacities = 1.0 - torch.exp(-(self.density_ema * self.cell_sizes).clamp(max=50.0))
         threshold = min(self.opacity_threshold, float(opacities.mean()))
-        if step >= self.warmup_steps:
+        if not warming_up:
             self.occupied.copy_(opacities > threshold)

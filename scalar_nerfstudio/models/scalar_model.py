@@ -28,7 +28,7 @@ from nerfstudio.models.base_model import Model, ModelConfig
 from torch import Tensor
 from torch.nn import Parameter
 
-from scalar_nerfstudio.fields.scalar_field import ScalarField, ScalarFieldConfig, contract_to_unit_cube
+from scalar_nerfstudio.fields.scalar_field import ScalarField, ScalarFieldConfig, contract_to_unit_cube, unit_cube_to_world
 from scalar_nerfstudio.metrics import ImageMetrics, psnr
 from scalar_nerfstudio.model_components.rendering import (
     alphas_from_densities,
@@ -251,6 +251,17 @@ class ScalarModel(NormalsOutput, Model):
         self.occupancy.update(step, self._density_no_grad)
 
     @torch.no_grad()
+    def seed_occupancy_from(self, other: "ScalarModel") -> None:
+        """Mark this model's occupancy grid from ``other``'s density (a block from the global model):
+        each cell centre is taken to the world, then into ``other``'s frame; no warm-up follows."""
+        world = self._from_region(unit_cube_to_world(self.occupancy.cell_centres()))
+        self.occupancy.seed(other._density_no_grad(contract_to_unit_cube(other._to_region(world))))
+
+    def _from_region(self, positions: Tensor) -> Tensor:
+        """[N, 3] positions in the model's region frame -> [N, 3] world positions."""
+        return positions * self.region_radius + self.region_centre.to(positions.dtype)
+
+    @torch.no_grad()
     def _density_no_grad(self, unit_positions: Tensor) -> Tensor:
         """[M, 3] contracted unit-cube positions -> [M] float32 density, evaluated in chunks without grad."""
         return torch.cat(
@@ -285,9 +296,12 @@ class ScalarModel(NormalsOutput, Model):
         positions = origins[:, None, :] + directions[:, None, :] * t_mid[..., None]  # [R, S, 3] world
         unit_positions = contract_to_unit_cube(self._to_region(positions.reshape(-1, 3)))  # [R*S, 3]
 
-        sample_ids = self._visible_samples(unit_positions, deltas)  # [M] flat indices into R*S
+        if torch.is_grad_enabled():  # training: the density of the kept samples again, with gradients
+            sample_ids = self._visible_samples(unit_positions, deltas)  # [M] flat indices into R*S
+            density, geo = self.field.density_at_unit(unit_positions[sample_ids])
+        else:  # rendering: one field pass over the occupied samples serves the occlusion test and the colour
+            sample_ids, density, geo = self._visible_samples_with_features(unit_positions, deltas)
         ray_ids = torch.div(sample_ids, num_samples, rounding_mode="floor")
-        density, geo = self.field.density_at_unit(unit_positions[sample_ids])
         point_indices = camera_indices[ray_ids] if camera_indices is not None else None
         rgb_points = self.field.colour(geo, directions[ray_ids], point_indices)
         # Volume rendering in float32 also under autocast (bf16/fp16 cumulative sums drift).
@@ -311,6 +325,36 @@ class ScalarModel(NormalsOutput, Model):
         if self.normals_wanted() if normals is None else normals:
             outputs["normals"] = normals_to_unit_interval(self._ray_normals(positions, sample_ids, weights.detach(), directions))
         return outputs
+
+    @torch.no_grad()
+    def render_depth_only(self, ray_bundle: RayBundle, source: Literal["field", "grid"] = "field") -> Dict[str, Tensor]:
+        """``depth`` [R, 1] and ``accumulation`` [R, 1] without colour: what choosing blocks per ray needs.
+
+        ``field``: from the field's density at the occupied samples (no colour head, no appearance, no
+        gradient: about half a render's cost). ``grid``: from the occupancy grid's density estimates
+        alone (no field evaluation at all; each cell's estimate is the largest density seen in it, so
+        the depth is coarser and tends to come early).
+        """
+        if self.collider is not None:
+            ray_bundle = self.collider(ray_bundle)
+        origins = ray_bundle.origins.reshape(-1, 3)
+        directions = ray_bundle.directions.reshape(-1, 3)
+        num_rays = origins.shape[0]
+        nears = ray_bundle.nears.reshape(-1, 1) if ray_bundle.nears is not None else origins.new_full((num_rays, 1), self.config.near_plane)
+        fars = ray_bundle.fars.reshape(-1, 1) if ray_bundle.fars is not None else origins.new_full((num_rays, 1), self.config.far_plane)
+        origins, directions, nears, fars = _neutralise_bad_rays(origins, directions, nears, fars)
+        t_starts, t_ends = sample_intervals(nears, fars, self.config.num_samples_per_ray, jitter=False)
+        t_mid = (t_starts + t_ends) / 2.0
+        positions = origins[:, None, :] + directions[:, None, :] * t_mid[..., None]  # [R, S, 3]
+        unit_positions = contract_to_unit_cube(self._to_region(positions.reshape(-1, 3)))
+        if source == "grid":
+            densities = self.occupancy.density_estimates(unit_positions)
+        else:
+            occupied = torch.nonzero(self.occupancy.is_occupied(unit_positions)).squeeze(-1)
+            densities = torch.zeros(unit_positions.shape[0], device=unit_positions.device)
+            densities[occupied] = self._density_no_grad(unit_positions[occupied])
+        weights, _ = render_weights(densities.reshape(t_mid.shape), t_ends - t_starts)
+        return {"depth": render_depth(weights, t_mid, fars), "accumulation": weights.sum(dim=-1, keepdim=True)}
 
     def _ray_normals(self, positions: Tensor, sample_ids: Tensor, weights: Tensor, directions: Tensor) -> Tensor:
         """Expected unit normal per ray, [R, 3] in [-1, 1].
@@ -373,6 +417,24 @@ class ScalarModel(NormalsOutput, Model):
         if self.config.alpha_threshold > 0 and self.occupancy.pruning:
             visible &= alphas.reshape(-1) > self.config.alpha_threshold
         return torch.nonzero(visible).squeeze(-1)
+
+    @torch.no_grad()
+    def _visible_samples_with_features(self, unit_positions: Tensor, deltas: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
+        """:meth:`_visible_samples` without gradients, keeping what the field computed on the way:
+        ([M] flat sample indices, [M] density, [M, F] geometry features)."""
+        num_rays, num_samples = deltas.shape
+        candidate_ids = torch.nonzero(self.occupancy.is_occupied(unit_positions)).squeeze(-1)
+        density, geo = self.field.density_at_unit(unit_positions[candidate_ids])
+        if candidate_ids.numel() == 0 or self.config.transmittance_threshold <= 0:
+            return candidate_ids, density, geo
+        densities = torch.zeros(num_rays * num_samples, device=deltas.device)
+        densities[candidate_ids] = density.float()
+        alphas = alphas_from_densities(densities.reshape(num_rays, num_samples), deltas)
+        _, transmittance = weights_from_alphas(alphas)
+        keep = transmittance.reshape(-1)[candidate_ids] > self.config.transmittance_threshold
+        if self.config.alpha_threshold > 0 and self.occupancy.pruning:
+            keep &= alphas.reshape(-1)[candidate_ids] > self.config.alpha_threshold
+        return candidate_ids[keep], density[keep], geo[keep]
 
     def _background(self, num_rays: int, like: Tensor) -> Tensor:
         """[R, 3] background colour: random while training (if configured), grey otherwise."""

@@ -20,15 +20,17 @@ from torch.nn import Parameter
 
 from scalar_nerfstudio.blocks.capacity import BlockCapacity
 from scalar_nerfstudio.blocks.split import Block, BlockSplit
-from scalar_nerfstudio.blocks.visibility import aabb_in_frustum
 from scalar_nerfstudio.fusion import (
+    FUSED_KEYS,
     ParsedFusionMode,
-    fuse_outputs,
     fuse_weighted,
-    idw_weights,
+    fusion_weights,
     nearest_block,
     parse_fusion_mode,
-    select_winner,
+    region_scores,
+    select_blocks,
+    surface_points,
+    weights_winner,
 )
 from scalar_nerfstudio.metrics import psnr
 from scalar_nerfstudio.model_components.rendering import facing_normals, normals_from_unit_interval, normals_to_unit_interval, safe_normalise
@@ -36,6 +38,7 @@ from scalar_nerfstudio.models.scalar_model import NormalsOutput, ScalarModel, Sc
 from scalar_nerfstudio.blocks.palette import BLOCK_PALETTE, GLOBAL_COLOUR
 
 DecoderMode = Literal["finetune", "frozen", "independent"]
+BlockInit = Literal["global", "fresh"]
 #: A block's region radius never drops below this (normalised scene units; cameras span [-1, 1]).
 MIN_REGION_RADIUS = 0.05
 
@@ -46,12 +49,23 @@ class ScalarSceneModelConfig(ScalarModelConfig):
 
     _target: Type = field(default_factory=lambda: ScalarSceneModel)
     fusion: str = "global"
-    """How block renders are fused: global (closest to the global model's colour, the paper's), idw
-    (Block-NeRF's inverse distance weighting), nearest, global-only, or block:<k>."""
+    """How block renders are fused: global (closest to the global model's colour, the paper's), surface
+    (the block whose region holds the surface the global depth points to), idw (Block-NeRF's inverse
+    distance weighting), nearest, global-only, or block:<k>."""
     idw_gamma: float = 1.0
-    """Exponent of inverse distance weighting (``idw`` fusion)."""
-    skip_invisible_blocks: bool = True
-    """When rendering a camera, skip blocks whose scaled AABB lies outside its view frustum."""
+    """Exponent of inverse distance weighting (``idw``, and ``surface`` between its blocks)."""
+    seed_block_occupancy: bool = True
+    """A block's occupancy grid starts from the global model's density (empty space is skipped from
+    its first step) instead of a warm-up that evaluates every sample."""
+    selection_depth: Literal["field", "grid"] = "field"
+    """Where choosing blocks per ray reads the global model's depth when the fusion does not render the
+    global colour: ``field`` (a density-only pass of the global field) or ``grid`` (its occupancy
+    grid's density estimates: no field evaluation, coarser)."""
+    blocks_per_ray: int = 2
+    """Per ray, render only this many blocks: those whose region best holds the point the global
+    model's depth gives (``global``, ``idw``, ``surface``; ``nearest`` renders one). The render cost is
+    then the global model's plus this many blocks', whatever the number of blocks. 0: every block on
+    every ray (the paper's ``global`` rule over all blocks; cost grows with K)."""
 
 
 def block_region(block: Block) -> Tuple[Tuple[float, float, float], float]:
@@ -94,6 +108,8 @@ class ScalarSceneModel(NormalsOutput, Model):
         block_capacities: {k: BlockCapacity} table size and finest resolution of block k's model
             (default: the config's field settings).
         decoder_mode: ``finetune`` / ``frozen`` (start from the global decoder) or ``independent``.
+        block_init: ``global``: a block model lives in the global model's frame and starts as a copy of
+            it (:meth:`begin_block`); ``fresh``: its own frame over its scaled AABB, an empty table.
     """
 
     config: ScalarSceneModelConfig
@@ -110,16 +126,20 @@ class ScalarSceneModel(NormalsOutput, Model):
         self.decoder_mode: DecoderMode = self.kwargs.get("decoder_mode", "finetune")
         if self.decoder_mode not in ("finetune", "frozen", "independent"):
             raise ValueError(f"decoder_mode {self.decoder_mode!r}: expected finetune, frozen or independent")
+        self.block_init: BlockInit = self.kwargs.get("block_init", "fresh")
+        if self.block_init not in ("global", "fresh"):
+            raise ValueError(f"block_init {self.block_init!r}: expected global or fresh")
         num_images: Dict[int, int] = {b.index: len(b.image_indices) for b in self.split.blocks}  # sizes appearance embeddings
         self.fusion_mode: ParsedFusionMode = parse_fusion_mode(self.config.fusion, self.split.num_blocks)
-        self._view_blocks: Optional[List[int]] = None
         self.rendered_models: set = set()
         """Models (block indices, "global") rendered since the last camera started (for reports)."""
+        self.rays_rendered_by_block: Dict[int, int] = {}
+        """Rays each block rendered since the last camera started (for reports)."""
         self.global_model = ScalarModel(config=self.config, scene_box=self.scene_box, num_train_data=self.num_train_data)
         capacities: Dict[int, BlockCapacity] = self.kwargs.get("block_capacities") or {}
         blocks = {}
         for index in self.block_ids:
-            centre, radius = block_region(self.split.blocks[index])
+            centre, radius = block_region(self.split.blocks[index]) if self.block_init == "fresh" else ((0.0, 0.0, 0.0), 1.0)
             blocks[str(index)] = ScalarModel(
                 config=self._block_config(capacities.get(index)), scene_box=self.scene_box, num_train_data=num_images[index],
                 region_centre=centre, region_radius=radius,
@@ -131,6 +151,9 @@ class ScalarSceneModel(NormalsOutput, Model):
         self.register_buffer("blocks_started", torch.zeros(self.split.num_blocks, dtype=torch.bool))
         self.register_buffer(
             "block_centres", torch.tensor([b.centre for b in self.split.blocks], dtype=torch.float32), persistent=False
+        )
+        self.register_buffer(
+            "block_radii", torch.tensor([block_region(b)[1] for b in self.split.blocks], dtype=torch.float32), persistent=False
         )
 
     def _block_config(self, capacity: Optional[BlockCapacity]) -> ScalarModelConfig:
@@ -172,11 +195,23 @@ class ScalarSceneModel(NormalsOutput, Model):
 
     @torch.no_grad()
     def begin_block(self, block: int) -> None:
-        """Start block ``block``'s phase once: copy the global decoder into it (finetune / frozen)."""
+        """Start block ``block``'s phase once: copy the global decoder into it (finetune / frozen); with
+        ``block_init`` global, also the global table, occupancy grid and the block's images' appearance
+        embeddings (the block starts as the global model); else, with :attr:`seed_block_occupancy`, mark
+        its occupancy grid from the global model's density."""
         if bool(self.blocks_started[block]):
             return
+        model = self.blocks[str(block)]
         if self.decoder_mode != "independent":
-            self.blocks[str(block)].field.decoder.load_state_dict(self.global_model.field.decoder.state_dict())
+            model.field.decoder.load_state_dict(self.global_model.field.decoder.state_dict())
+        if self.block_init == "global":
+            model.field.encoder.load_state_dict(self.global_model.field.encoder.state_dict())
+            rows = torch.tensor(self.split.blocks[block].image_indices, dtype=torch.long)
+            model.field.appearance.weight.copy_(self.global_model.field.appearance.weight[rows.to(model.field.appearance.weight.device)])
+            model.occupancy.load_state_dict(self.global_model.occupancy.state_dict())
+            model.occupancy.seeded.fill_(True)
+        elif self.config.seed_block_occupancy:
+            model.seed_occupancy_from(self.global_model)
         self.blocks_started[block] = True
 
     def started_block_ids(self) -> List[int]:
@@ -201,100 +236,128 @@ class ScalarSceneModel(NormalsOutput, Model):
         self.fusion_mode = parse_fusion_mode(mode, self.split.num_blocks)
 
     @torch.no_grad()
-    def get_outputs_for_camera(self, camera: Cameras, obb_box=None, skip_invisible_blocks: Optional[bool] = None) -> Dict[str, Tensor]:
-        """Render one camera, fusing only the blocks whose AABB can be in its view (``skip_invisible_blocks``,
-        default: the config's)."""
-        skip = self.config.skip_invisible_blocks if skip_invisible_blocks is None else skip_invisible_blocks
-        self._view_blocks = self.visible_blocks(camera) if skip else None
-        self.rendered_models: set = set()
-        try:
-            return super().get_outputs_for_camera(camera, obb_box=obb_box)
-        finally:
-            self._view_blocks = None
-
-    def visible_blocks(self, camera: Cameras) -> List[int]:
-        """Blocks whose scaled AABB is (possibly) inside ``camera``'s view frustum."""
-        camera = camera.reshape(()) if camera.shape != () else camera
-        pose = camera.camera_to_worlds.detach().cpu().numpy()
-        intrinsics = [float(v) for v in (camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height)]
-        return [
-            b.index for b in self.split.blocks
-            if aabb_in_frustum(pose, *intrinsics, b.aabb_min, b.aabb_max)
-        ]
+    def get_outputs_for_camera(self, camera: Cameras, obb_box=None) -> Dict[str, Tensor]:
+        """nerfstudio's camera render; :attr:`rendered_models` then lists the models it rendered."""
+        self.rendered_models = set()
+        self.rays_rendered_by_block: Dict[int, int] = {}
+        return super().get_outputs_for_camera(camera, obb_box=obb_box)
 
     def get_outputs(self, ray_bundle: RayBundle) -> Dict[str, Tensor]:
         """Fused ``rgb`` [R, 3], ``depth`` [R, 1], ``accumulation`` [R, 1], ``block_winner`` [R, 1],
         ``block_colour`` [R, 3]; ``normals`` [R, 3] in [0, 1] when :meth:`normals_wanted`.
 
-        ``block_winner`` is the index of the block that gave the pixel (-1: the global model);
-        ``block_colour`` shows it in the block's viewer colour.
+        Each block renders only the rays it is selected for (:meth:`select_rays`); the fusion sees
+        NaN where a block was not rendered, which every rule treats as "not available". The global
+        model renders colour for ``global`` / ``global-only`` (and the rays no block could give), its
+        depth alone where only the selection needs it. ``block_winner`` is the index of the block that
+        gave the pixel (-1: the global model); ``block_colour`` shows it in the block's viewer colour.
         """
         normals = self.normals_wanted()
         mode = self.fusion_mode
         block_ids = self._blocks_for(mode)
-        if mode.kind == "nearest" and len(block_ids) > 1:  # render only the blocks some ray is nearest to
-            centres = self.block_centres[block_ids].to(ray_bundle.origins.device)
-            nearest = nearest_block(ray_bundle.origins.reshape(-1, 3), centres).reshape(-1)
-            block_ids = [block_ids[i] for i in sorted(set(nearest.tolist()))]
-        # The global model is rendered only where the fusion needs it (idw / nearest / block do not).
-        # Its normals only where it is the output (with blocks, "global" takes every pixel from a block).
-        global_outputs = (
-            self.global_model.render_rays(ray_bundle, normals=normals and not block_ids)
-            if mode.kind in ("global", "global-only") or not block_ids else None
-        )
-        self.rendered_models.update([*block_ids, *(["global"] if global_outputs is not None else [])])
+        if mode.kind == "global" and self.config.blocks_per_ray == 1:
+            # One block chosen per ray: it is the closest to the global colour by itself, so the global
+            # colour is not rendered (the same image as "surface" with one block per ray).
+            mode = ParsedFusionMode(kind="surface")
+        origins = ray_bundle.origins.reshape(-1, 3)
+        global_outputs: Optional[Dict[str, Tensor]] = None
+        if mode.kind in ("global", "global-only") or not block_ids:
+            # Its normals only where it is the output (with blocks, "global" takes every pixel from a block).
+            global_outputs = self.global_model.render_rays(ray_bundle, normals=normals and not block_ids)
+            self.rendered_models.add("global")
         if not block_ids:
-            winner = torch.full_like(global_outputs["accumulation"], -1.0)
-            return {**global_outputs, "block_winner": winner, "block_colour": self._winner_colours(winner)}
-        block_outputs = [self.blocks[str(b)].render_rays(ray_bundle, normals=normals) for b in block_ids]
-        if mode.kind == "block":
-            mode = ParsedFusionMode(kind="block", block_index=0)
-        fused = fuse_outputs(
-            mode, block_outputs, global_outputs,
-            camera_origin=ray_bundle.origins.reshape(-1, 3),
-            block_centres=self.block_centres[block_ids].to(ray_bundle.origins.device),
-            gamma=self.config.idw_gamma,
+            winner = torch.full_like(global_outputs["accumulation"], -1.0)  # type: ignore[index]
+            return {**global_outputs, "block_winner": winner, "block_colour": self._winner_colours(winner)}  # type: ignore[dict-item]
+        selected, scores = self.select_rays(mode, block_ids, ray_bundle, global_outputs)  # [K', R]
+        block_outputs = [self._render_block_rays(b, ray_bundle, selected[i], normals) for i, b in enumerate(block_ids)]
+        self.rendered_models.update(b for i, b in enumerate(block_ids) if bool(selected[i].any()))
+        rgb_stack = torch.stack([o["rgb"] for o in block_outputs])  # [K', R, 3]
+        weights = fusion_weights(
+            ParsedFusionMode(kind="block", block_index=0) if mode.kind == "block" else mode,
+            rgb_stack, None if global_outputs is None else global_outputs["rgb"], origins,
+            self.block_centres[block_ids].to(origins.device), self.config.idw_gamma, scores,
+            self.config.blocks_per_ray or None,
         )
+        orphans = ~(weights > 0).any(dim=0)  # [R] rays no block could give: the global model's
+        if bool(orphans.any()) and global_outputs is None:
+            global_outputs = self._render_global_rays(ray_bundle, orphans, normals)
+            self.rendered_models.add("global")
+        fused = {
+            key: fuse_weighted(torch.stack([o[key] for o in block_outputs]), weights,
+                               None if global_outputs is None or key not in global_outputs else global_outputs[key])
+            for key in FUSED_KEYS
+        }
         if normals:
-            fused["normals"] = self._fuse_normals(
-                mode, block_outputs, global_outputs, fused["block_winner"].reshape(-1), ray_bundle,
-                self.block_centres[block_ids].to(ray_bundle.origins.device),
-            )
-        position_to_id = torch.tensor([-1, *block_ids], dtype=torch.float32, device=fused["rgb"].device)
-        fused["block_winner"] = position_to_id[fused["block_winner"].reshape(-1) + 1][:, None]
+            fallback = (global_outputs["normals"] if global_outputs is not None and "normals" in global_outputs
+                        else normals_to_unit_interval(facing_normals(ray_bundle.directions.reshape(-1, 3))))
+            stacked = torch.stack([o["normals"] for o in block_outputs])  # [K', R, 3] in [0, 1]
+            if mode.kind in ("global", "nearest", "block"):  # one winner per ray: its normal, bit for bit
+                fused["normals"] = fuse_weighted(stacked, weights, fallback)
+            else:  # a weighted mix of unit normals, normalised again
+                mixed = fuse_weighted(normals_from_unit_interval(stacked), weights, normals_from_unit_interval(fallback))
+                fused["normals"] = normals_to_unit_interval(safe_normalise(mixed, normals_from_unit_interval(fallback)))
+        position_to_id = torch.tensor([-1, *block_ids], dtype=torch.float32, device=origins.device)
+        fused["block_winner"] = position_to_id[weights_winner(weights) + 1][:, None]
         fused["block_colour"] = self._winner_colours(fused["block_winner"])
         return fused
 
-    def _fuse_normals(
-        self,
-        mode: ParsedFusionMode,
-        block_outputs: List[Dict[str, Tensor]],
-        global_outputs: Optional[Dict[str, Tensor]],
-        winner: Tensor,
-        ray_bundle: RayBundle,
-        block_centres: Tensor,
-    ) -> Tensor:
-        """[R, 3] fused normals in [0, 1], following the colour's fusion.
+    @torch.no_grad()
+    def select_rays(
+        self, mode: ParsedFusionMode, block_ids: List[int], ray_bundle: RayBundle, global_outputs: Optional[Dict[str, Tensor]] = None
+    ) -> Tuple[Tensor, Optional[Tensor]]:
+        """Which block renders which ray: ``([K', R] bool, [K', R] region scores or None)``.
 
-        Args:
-            mode: the fusion mode the colours were fused with ("block" already renumbered to 0).
-            block_outputs: K block renders with ``normals`` [R, 3] in [0, 1].
-            global_outputs: the global render (its ``normals`` are the fallback if present).
-            winner: [R] position of each ray's winning block in ``block_outputs`` (-1: none).
-            ray_bundle: the rendered rays (origins for IDW, directions for the fallback).
-            block_centres: [K, 3] centres of the rendered blocks.
-
-        A ray no model gives a normal (winner -1 without global normals) faces its camera.
+        ``block``: every ray. ``nearest``: the block whose centre is nearest to the ray's origin.
+        ``global`` / ``idw`` / ``surface``: the :attr:`blocks_per_ray` blocks whose region best holds
+        the point at the global model's depth (:func:`region_scores`); with ``blocks_per_ray`` 0 or
+        at least K', every block (``surface`` still weights them by score). The global depth is taken
+        from ``global_outputs`` when given, else rendered from the density alone.
         """
-        directions = ray_bundle.directions.reshape(-1, 3)
-        facing = facing_normals(directions)
-        fallback = global_outputs["normals"] if global_outputs is not None and "normals" in global_outputs else normals_to_unit_interval(facing)
-        stacked = torch.stack([outputs["normals"] for outputs in block_outputs])  # [K, R, 3]
-        if mode.kind != "idw":
-            return select_winner(stacked, winner, fallback=fallback)
-        weights = idw_weights(ray_bundle.origins.reshape(-1, 3), block_centres, self.config.idw_gamma)  # [K, R]
-        mixed = fuse_weighted(normals_from_unit_interval(stacked), weights, fallback=normals_from_unit_interval(fallback))
-        return normals_to_unit_interval(safe_normalise(mixed, normals_from_unit_interval(fallback)))
+        origins = ray_bundle.origins.reshape(-1, 3)
+        num_rays, num_blocks = origins.shape[0], len(block_ids)
+        every = torch.ones(num_blocks, num_rays, dtype=torch.bool, device=origins.device)
+        if mode.kind == "block":
+            return every, None
+        centres = self.block_centres[block_ids].to(origins.device)
+        if mode.kind == "nearest":
+            nearest = nearest_block(origins, centres)
+            return torch.arange(num_blocks, device=origins.device)[:, None] == nearest[None], None
+        limit = self.config.blocks_per_ray
+        if mode.kind != "surface" and (limit <= 0 or limit >= num_blocks):
+            return every, None
+        if global_outputs is None:
+            global_outputs = self.global_model.render_depth_only(ray_bundle, source=self.config.selection_depth)
+            self.rendered_models.add("global")
+        points = surface_points(origins, ray_bundle.directions.reshape(-1, 3), global_outputs["depth"])
+        scores = region_scores(points, centres, self.block_radii[block_ids].to(origins.device))
+        return select_blocks(scores, limit if limit > 0 else num_blocks), scores
+
+    def _render_block_rays(self, block: int, ray_bundle: RayBundle, rays: Tensor, normals: bool) -> Dict[str, Tensor]:
+        """Block ``block``'s render of the rays where ``rays`` [R] is True; NaN on the others."""
+        return self._render_subset(self.blocks[str(block)], ray_bundle, rays, normals, block)
+
+    def _render_global_rays(self, ray_bundle: RayBundle, rays: Tensor, normals: bool) -> Dict[str, Tensor]:
+        """The global model's render of the rays where ``rays`` [R] is True; NaN on the others."""
+        return self._render_subset(self.global_model, ray_bundle, rays, normals, None)
+
+    def _render_subset(self, model: ScalarModel, ray_bundle: RayBundle, rays: Tensor, normals: bool, block: Optional[int]) -> Dict[str, Tensor]:
+        num_rays = rays.shape[0]
+        keys = [*FUSED_KEYS, *(["normals"] if normals else [])]
+        widths = {"rgb": 3, "normals": 3}
+        device = ray_bundle.origins.device
+        full = {k: torch.full((num_rays, widths.get(k, 1)), float("nan"), device=device) for k in keys}
+        count = int(rays.sum())
+        if block is not None:
+            self.rays_rendered_by_block[block] = self.rays_rendered_by_block.get(block, 0) + count
+        if count == 0:
+            return full
+        if count == num_rays:
+            outputs = model.render_rays(ray_bundle.reshape((num_rays,)), normals=normals)
+            return {k: outputs[k].reshape(num_rays, -1) for k in keys}
+        outputs = model.render_rays(ray_bundle.reshape((num_rays,))[rays], normals=normals)
+        for key in keys:
+            full[key][rays] = outputs[key].reshape(count, -1).to(full[key].dtype)
+        return full
 
     def _winner_colours(self, winner: Tensor) -> Tensor:
         """[R, 1] block indices (-1: global) -> [R, 3] viewer colours."""
@@ -303,12 +366,10 @@ class ScalarSceneModel(NormalsOutput, Model):
         return palette[torch.where(index < 0, 0, 1 + index % len(BLOCK_PALETTE))]
 
     def _blocks_for(self, mode: ParsedFusionMode) -> List[int]:
-        """Blocks to render for ``mode`` (none for global-only or before any block has trained)."""
+        """Blocks that may render for ``mode`` (none for global-only or before any block has trained)."""
         if mode.kind == "global-only":
             return []
         started = self.started_block_ids()
-        if self._view_blocks is not None and mode.kind != "block":
-            started = [b for b in started if b in self._view_blocks]
         if mode.kind == "block":
             return [mode.block_index] if mode.block_index in started else []
         return started

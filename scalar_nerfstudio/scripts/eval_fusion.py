@@ -2,8 +2,8 @@
 
 For each fusion mode it renders every eval image of the run and reports PSNR, SSIM (LPIPS when its
 weights are on disk) and render time in ms per image, as ``fusion.json`` (keys named as the modes)
-and ``fusion.md``. It also measures what skipping blocks outside the view frustum does: the render
-time of ``global`` fusion with and without skipping, and how much the images differ.
+and ``fusion.md``. It also measures what choosing blocks per ray does: ``global``, ``idw`` and
+``surface`` rendered again with every block on every ray, their times and how much the images differ.
 
     scalar-nerf-eval-fusion --load-config RUN/config.yml --output-dir RUN/fusion_eval
 """
@@ -13,7 +13,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Dict, Tuple
+from typing import Dict, Literal, Optional, Tuple
 
 import tyro
 from nerfstudio.utils.eval_utils import eval_setup
@@ -34,9 +34,15 @@ class EvalFusionArgs:
     output_dir: Path = Path("fusion_eval")
     """Where fusion.json and fusion.md are written."""
     modes: Tuple[str, ...] = FUSION_MODES
-    """Fusion modes to evaluate (global, idw, nearest, global-only, block:K)."""
-    measure_skipping: bool = True
-    """Also render global fusion without frustum skipping and compare."""
+    """Fusion modes to evaluate (global, surface, idw, nearest, global-only, block:K)."""
+    measure_selection: bool = True
+    """Also render global, surface and idw with every block on every ray and compare."""
+    blocks_per_ray: Optional[int] = None
+    """Render with this many blocks per ray instead of the run's (0: every block)."""
+    selection_depth: Optional[Literal["field", "grid"]] = None
+    """Choose the blocks per ray from this depth instead of the run's (field or grid)."""
+    max_images: Optional[int] = None
+    """Evaluate only the first this many eval images (evenly spread), for a quick table."""
 
 
 def _print_row(mode: str, row: Dict[str, float]) -> None:
@@ -48,7 +54,15 @@ def evaluate(args: EvalFusionArgs) -> Dict[str, Dict[str, float]]:
     _, pipeline, _, _ = eval_setup(args.load_config, test_mode="test")
     if not hasattr(pipeline.model, "set_fusion"):
         raise SystemExit(f"{args.load_config} is not a scalar-nerf run")
-    return evaluate_fusion_modes(pipeline, args.modes, args.measure_skipping, on_mode=_print_row)
+    if args.blocks_per_ray is not None:
+        if args.blocks_per_ray < 0:
+            raise SystemExit(f"--blocks-per-ray {args.blocks_per_ray}: must be >= 0 (0: every block)")
+        pipeline.model.config.blocks_per_ray = args.blocks_per_ray
+    if args.selection_depth is not None:
+        pipeline.model.config.selection_depth = args.selection_depth
+    if args.max_images is not None and args.max_images < 1:
+        raise SystemExit(f"--max-images {args.max_images}: must be >= 1")
+    return evaluate_fusion_modes(pipeline, args.modes, args.measure_selection, on_mode=_print_row, max_images=args.max_images)
 
 
 def main(args: EvalFusionArgs) -> None:
