@@ -28,8 +28,8 @@ def test_quick_benchmark_end_to_end(tmp_path: Path) -> None:
     report = json.loads((output / "results.json").read_text())
     labels = {row["label"] for row in report["rows"]}
     assert labels == {
-        "NGP_19 (one model, 2^19)", "SCALAR-NeRF (blocks + global fusion)", "blocks + IDW (same models)",
-        "blocks + nearest (same models)", "nerfacto (torch), same wall-clock",
+        "NGP_14 (one model, 2^14)", "SCALAR-NeRF (blocks + global fusion)", "blocks + surface fusion (same models)",
+        "blocks + IDW (same models)", "blocks + nearest (same models)", "its global model alone", "nerfacto (torch), same wall-clock",
     }
     results = report["results"]
     scalar, ngp, global_phase = results["scalar"], results["ngp19"], results["global"]
@@ -50,6 +50,8 @@ def test_quick_benchmark_end_to_end(tmp_path: Path) -> None:
         assert row["render_ms_per_image"] > 0 and row["peak_rss_mib"] > 100 and row["train_rays_per_s"] > 0
     table = (output / "results.md").read_text()
     assert "| SCALAR-NeRF (blocks + global fusion) | global | 32 |" in table
+    # equal wall-clock with K workers: the global phase plus one of the 2 blocks
+    assert scalar["parallel_train_s"] < scalar["train_s"] and "## Equal wall-clock, K blocks on K workers" in table
     for name in ("psnr_vs_time.png", "psnr_vs_render_time.png", "psnr_vs_parameters.png"):
         data = (output / name).read_bytes()
         assert data.startswith(PNG_SIGNATURE) and len(data) > 5000, name

@@ -171,7 +171,8 @@ def test_pipeline_automatic_capacity_within_bounds_and_report(scene: Path, tmp_p
     assert params["block 1"] == sum(p.numel() for p in model.blocks["1"].parameters())
     assert report["total_parameters"] == sum(params.values())
     assert all(m["trained"] for m in report["models"])
-    assert all(m["optimizer_state_mib"] > 0 for m in report["models"]), "Adam state of every trained model is counted"
+    # Adam state is counted; the global model's and block 0's were released when their phases ended
+    assert [m["optimizer_state_mib"] > 0 for m in report["models"]] == [False, False, True]
     assert report["peak_rss_mib"] > 100
 
 

@@ -83,15 +83,16 @@ class Variant:
 
 
 def use_quick_budgets(config: BenchmarkConfig) -> None:
-    """``--quick``'s budgets (for the small synthetic scene): no downscale, a few steps, two blocks, small batches."""
+    """``--quick``'s budgets (for the small synthetic scene): no downscale, a few steps, two blocks, small
+    batches, tables of 2^14."""
     config.downscale, config.global_steps, config.block_steps, config.num_blocks = 1, 20, 6, 2
-    config.rays_per_batch, config.eval_every = 512, 10
+    config.rays_per_batch, config.eval_every, config.log2_table = 512, 10, 14
 
 
 def _tables(config: BenchmarkConfig) -> Tuple[int, int, Dict[str, Any]]:
-    """(log2 T of NGP_19, of NGP_21, field/sampling overrides shared by all our variants)."""
+    """(log2 T of NGP_T, of NGP_{T+2}, field/sampling overrides shared by all our variants)."""
     if config.quick:
-        return 14, 16, {
+        return config.log2_table, config.log2_table + 2, {
             "pipeline.model.field.max_resolution": 256, "pipeline.model.num_samples_per_ray": 32,
             "pipeline.model.occupancy_warmup_steps": 8,
         }

@@ -2,8 +2,9 @@
 
 Scenes:
   town       a large town of streets and textured buildings, walked by street-level cameras
-             (transforms.json, images/, 16-bit depths/ in mm, scene.json); too big for one
-             hash table, so scalar-nerf splits it into blocks
+             (transforms.json, images/, 16-bit depths/ in mm, scene.json); automatic K > 1,
+             so scalar-nerf splits it into blocks (docs/town.md: at CPU budgets blocks do not
+             pay off on it yet)
   courtyard  the small courtyard of scalar-nerf-demo (transforms.json, images/)
 
 Train on it with every 8th frame of the walk held out:
