@@ -571,13 +571,9 @@ def fusion_weights(
             raise ValueError(f"fusion mode {parsed.kind!r} needs camera_origin and block_centres")
         if block_centres.shape[0] != num_blocks:
             raise ValueError(f"{block_centres.shape[0]} block centres for {num_blocks} block outputs")
-        if parsed.kind == "idw":
-            weights = idw_weights(camera_origin, block_centres, gamma, valid=usable if camera_origin.ndim == 2 else None)
-            weights = weights[:, None].expand(num_blocks, num_pixels) if weights.ndim == 1 else weights
-            weights = torch.where(usable.to(weights.device), weights, torch.zeros_like(weights))
-            total = weights.sum(dim=0, keepdim=True)
-            return torch.where(total > 0, weights / torch.where(total > 0, total, torch.ones_like(total)), torch.zeros_like(weights)).to(block_rgb.device)
         origins = camera_origin if camera_origin.ndim == 2 else camera_origin[None].expand(num_pixels, 3)
+        if parsed.kind == "idw":  # shares over the blocks usable at each pixel
+            return idw_weights(origins, block_centres, gamma, valid=usable.to(origins.device)).to(block_rgb.device)
         winner = nearest_block(origins, block_centres, valid=usable.to(origins.device))
     winner = _per_pixel(winner, num_pixels).to(block_rgb.device)
     weights = torch.zeros(num_blocks, num_pixels, dtype=torch.float32, device=block_rgb.device)

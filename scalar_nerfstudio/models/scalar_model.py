@@ -202,6 +202,20 @@ class NormalsOutput:
         return torch.cat((torch.nan_to_num(foreground, nan=EVAL_BACKGROUND).clamp(0.0, 1.0), accumulation.clamp(0.0, 1.0)), dim=-1)
 
 
+@dataclass(frozen=True)
+class _RaySamples:
+    """Samples along R rays, S per ray (:meth:`ScalarModel._ray_samples`)."""
+
+    origins: Tensor  # [R, 3]
+    directions: Tensor  # [R, 3]
+    fars: Tensor  # [R, 1]
+    t_starts: Tensor  # [R, S]
+    t_ends: Tensor  # [R, S]
+    t_mid: Tensor  # [R, S]
+    positions: Tensor  # [R, S, 3] world
+    unit_positions: Tensor  # [R*S, 3] contracted unit cube
+
+
 class ScalarModel(NormalsOutput, Model):
     """Hash-grid NeRF with an occupancy grid, a shared-decoder field and per-image appearance.
 
@@ -281,20 +295,13 @@ class ScalarModel(NormalsOutput, Model):
         Also ``normals`` [R, 3] in [0, 1] (``(n + 1) / 2`` of the unit world-frame normal) when
         ``normals`` is True, or when it is None and :meth:`normals_wanted`.
         """
-        origins = ray_bundle.origins.reshape(-1, 3)
-        directions = ray_bundle.directions.reshape(-1, 3)
-        num_rays = origins.shape[0]
-        nears = ray_bundle.nears.reshape(-1, 1) if ray_bundle.nears is not None else origins.new_full((num_rays, 1), self.config.near_plane)
-        fars = ray_bundle.fars.reshape(-1, 1) if ray_bundle.fars is not None else origins.new_full((num_rays, 1), self.config.far_plane)
         camera_indices = ray_bundle.camera_indices.reshape(-1) if ray_bundle.camera_indices is not None else None
-        origins, directions, nears, fars = _neutralise_bad_rays(origins, directions, nears, fars)
-
-        t_starts, t_ends = sample_intervals(nears, fars, self.config.num_samples_per_ray, jitter=self.training)
-        t_mid = (t_starts + t_ends) / 2.0
+        samples = self._ray_samples(ray_bundle, jitter=self.training)
+        origins, directions, fars, t_starts, t_ends, t_mid = (
+            samples.origins, samples.directions, samples.fars, samples.t_starts, samples.t_ends, samples.t_mid)
+        positions, unit_positions = samples.positions, samples.unit_positions
+        num_rays, num_samples = t_mid.shape
         deltas = t_ends - t_starts
-        num_samples = t_mid.shape[1]
-        positions = origins[:, None, :] + directions[:, None, :] * t_mid[..., None]  # [R, S, 3] world
-        unit_positions = contract_to_unit_cube(self._to_region(positions.reshape(-1, 3)))  # [R*S, 3]
 
         if torch.is_grad_enabled():  # training: the density of the kept samples again, with gradients
             sample_ids = self._visible_samples(unit_positions, deltas)  # [M] flat indices into R*S
@@ -337,24 +344,31 @@ class ScalarModel(NormalsOutput, Model):
         """
         if self.collider is not None:
             ray_bundle = self.collider(ray_bundle)
-        origins = ray_bundle.origins.reshape(-1, 3)
-        directions = ray_bundle.directions.reshape(-1, 3)
-        num_rays = origins.shape[0]
-        nears = ray_bundle.nears.reshape(-1, 1) if ray_bundle.nears is not None else origins.new_full((num_rays, 1), self.config.near_plane)
-        fars = ray_bundle.fars.reshape(-1, 1) if ray_bundle.fars is not None else origins.new_full((num_rays, 1), self.config.far_plane)
-        origins, directions, nears, fars = _neutralise_bad_rays(origins, directions, nears, fars)
-        t_starts, t_ends = sample_intervals(nears, fars, self.config.num_samples_per_ray, jitter=False)
-        t_mid = (t_starts + t_ends) / 2.0
-        positions = origins[:, None, :] + directions[:, None, :] * t_mid[..., None]  # [R, S, 3]
-        unit_positions = contract_to_unit_cube(self._to_region(positions.reshape(-1, 3)))
+        samples = self._ray_samples(ray_bundle, jitter=False)
+        unit_positions = samples.unit_positions
         if source == "grid":
             densities = self.occupancy.density_estimates(unit_positions)
         else:
             occupied = torch.nonzero(self.occupancy.is_occupied(unit_positions)).squeeze(-1)
             densities = torch.zeros(unit_positions.shape[0], device=unit_positions.device)
             densities[occupied] = self._density_no_grad(unit_positions[occupied])
-        weights, _ = render_weights(densities.reshape(t_mid.shape), t_ends - t_starts)
-        return {"depth": render_depth(weights, t_mid, fars), "accumulation": weights.sum(dim=-1, keepdim=True)}
+        weights, _ = render_weights(densities.reshape(samples.t_mid.shape), samples.t_ends - samples.t_starts)
+        return {"depth": render_depth(weights, samples.t_mid, samples.fars), "accumulation": weights.sum(dim=-1, keepdim=True)}
+
+    def _ray_samples(self, ray_bundle: RayBundle, jitter: bool) -> "_RaySamples":
+        """The samples along a (collided) batch of rays: bad rays neutralised, then
+        ``num_samples_per_ray`` intervals from near to far (jittered if ``jitter``)."""
+        origins = ray_bundle.origins.reshape(-1, 3)
+        directions = ray_bundle.directions.reshape(-1, 3)
+        num_rays = origins.shape[0]
+        nears = ray_bundle.nears.reshape(-1, 1) if ray_bundle.nears is not None else origins.new_full((num_rays, 1), self.config.near_plane)
+        fars = ray_bundle.fars.reshape(-1, 1) if ray_bundle.fars is not None else origins.new_full((num_rays, 1), self.config.far_plane)
+        origins, directions, nears, fars = _neutralise_bad_rays(origins, directions, nears, fars)
+        t_starts, t_ends = sample_intervals(nears, fars, self.config.num_samples_per_ray, jitter=jitter)
+        t_mid = (t_starts + t_ends) / 2.0
+        positions = origins[:, None, :] + directions[:, None, :] * t_mid[..., None]  # [R, S, 3] world
+        unit_positions = contract_to_unit_cube(self._to_region(positions.reshape(-1, 3)))  # [R*S, 3]
+        return _RaySamples(origins, directions, fars, t_starts, t_ends, t_mid, positions, unit_positions)
 
     def _ray_normals(self, positions: Tensor, sample_ids: Tensor, weights: Tensor, directions: Tensor) -> Tensor:
         """Expected unit normal per ray, [R, 3] in [-1, 1].
@@ -404,29 +418,29 @@ class ScalarModel(NormalsOutput, Model):
     @torch.no_grad()
     def _visible_samples(self, unit_positions: Tensor, deltas: Tensor) -> Tensor:
         """Indices [M] (into the flat [R*S] samples) that are in occupied cells and not occluded."""
-        num_rays, num_samples = deltas.shape
-        occupied = self.occupancy.is_occupied(unit_positions)  # [R*S]
-        candidate_ids = torch.nonzero(occupied).squeeze(-1)
+        candidate_ids = torch.nonzero(self.occupancy.is_occupied(unit_positions)).squeeze(-1)
         if candidate_ids.numel() == 0 or self.config.transmittance_threshold <= 0:
             return candidate_ids
-        densities = torch.zeros(num_rays * num_samples, device=deltas.device)
-        densities[candidate_ids] = self._density_no_grad(unit_positions[candidate_ids])
-        alphas = alphas_from_densities(densities.reshape(num_rays, num_samples), deltas)
-        _, transmittance = weights_from_alphas(alphas)
-        visible = occupied & (transmittance.reshape(-1) > self.config.transmittance_threshold)
-        if self.config.alpha_threshold > 0 and self.occupancy.pruning:
-            visible &= alphas.reshape(-1) > self.config.alpha_threshold
-        return torch.nonzero(visible).squeeze(-1)
+        density = self._density_no_grad(unit_positions[candidate_ids])
+        return candidate_ids[self._kept_candidates(candidate_ids, density, deltas)]
 
     @torch.no_grad()
     def _visible_samples_with_features(self, unit_positions: Tensor, deltas: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
         """:meth:`_visible_samples` without gradients, keeping what the field computed on the way:
         ([M] flat sample indices, [M] density, [M, F] geometry features)."""
-        num_rays, num_samples = deltas.shape
         candidate_ids = torch.nonzero(self.occupancy.is_occupied(unit_positions)).squeeze(-1)
         density, geo = self.field.density_at_unit(unit_positions[candidate_ids])
         if candidate_ids.numel() == 0 or self.config.transmittance_threshold <= 0:
             return candidate_ids, density, geo
+        keep = self._kept_candidates(candidate_ids, density, deltas)
+        return candidate_ids[keep], density[keep], geo[keep]
+
+    @torch.no_grad()
+    def _kept_candidates(self, candidate_ids: Tensor, density: Tensor, deltas: Tensor) -> Tensor:
+        """[C] bool over the occupied samples ``candidate_ids`` (flat indices into [R*S]) with ``density``
+        [C]: True where the transmittance before the sample is above the threshold and (once the grid
+        prunes) its opacity above ``alpha_threshold``."""
+        num_rays, num_samples = deltas.shape
         densities = torch.zeros(num_rays * num_samples, device=deltas.device)
         densities[candidate_ids] = density.float()
         alphas = alphas_from_densities(densities.reshape(num_rays, num_samples), deltas)
@@ -434,7 +448,7 @@ class ScalarModel(NormalsOutput, Model):
         keep = transmittance.reshape(-1)[candidate_ids] > self.config.transmittance_threshold
         if self.config.alpha_threshold > 0 and self.occupancy.pruning:
             keep &= alphas.reshape(-1)[candidate_ids] > self.config.alpha_threshold
-        return candidate_ids[keep], density[keep], geo[keep]
+        return keep
 
     def _background(self, num_rays: int, like: Tensor) -> Tensor:
         """[R, 3] background colour: random while training (if configured), grey otherwise."""

@@ -239,7 +239,7 @@ class ScalarSceneModel(NormalsOutput, Model):
     def get_outputs_for_camera(self, camera: Cameras, obb_box=None) -> Dict[str, Tensor]:
         """nerfstudio's camera render; :attr:`rendered_models` then lists the models it rendered."""
         self.rendered_models = set()
-        self.rays_rendered_by_block: Dict[int, int] = {}
+        self.rays_rendered_by_block = {}
         return super().get_outputs_for_camera(camera, obb_box=obb_box)
 
     def get_outputs(self, ray_bundle: RayBundle) -> Dict[str, Tensor]:
