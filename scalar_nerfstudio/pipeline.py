@@ -24,7 +24,8 @@ from scalar_nerfstudio.blocks.capacity import BlockCapacity, LayoutScale, auto_n
 from scalar_nerfstudio.blocks.plan import BlockPlan, PlanSettings, load_plan, plan_blocks
 from scalar_nerfstudio.blocks.split import BlockSplit, BlockSplitError, format_split_table, load_blocks_json
 from scalar_nerfstudio.data.datamanager import ScalarDataManagerConfig, camera_centres, camera_layout
-from scalar_nerfstudio.viewer import BlockOverlay, fusion_dropdown
+from scalar_nerfstudio.runs import block_models_dir
+from scalar_nerfstudio.viewer import BlockOverlay, CoarseFirstRender, fusion_dropdown
 from scalar_nerfstudio.models.scene_model import BlockInit, DecoderMode, ScalarSceneModel, ScalarSceneModelConfig
 
 
@@ -178,11 +179,14 @@ class ScalarPipeline(VanillaPipeline):
             block_init=config.block_init,
         )
         self.model.to(device)
+        if config.run_plan is not None:  # a run that has started: its block_models/ are beside its plan
+            self.attach_run_dir(Path(config.run_plan).parent)
         if config.global_checkpoint is not None:
             self._load_global_model(Path(config.global_checkpoint), device)
-        # Viewer: fusion dropdown and block overlay (found by nerfstudio's viewer as attributes).
+        # Viewer: fusion dropdown, block overlay, coarse-first renders (found by nerfstudio's viewer as attributes).
         self.fusion_dropdown = fusion_dropdown(str(self.model.fusion_mode), self.split.num_blocks, self.model.set_fusion)
         self.block_overlay = BlockOverlay(self.split, camera_centres(parsed).numpy())
+        self.coarse_first_render = CoarseFirstRender()
         self._block_datamanager: Optional[DataManager] = None
         self._block_datamanager_index: Optional[int] = None
         self._device = device
@@ -278,6 +282,20 @@ class ScalarPipeline(VanillaPipeline):
             self._block_datamanager_index = phase.block
         assert self._block_datamanager is not None
         return self._block_datamanager
+
+    def attach_run_dir(self, run_dir: Path) -> None:
+        """Keep finished blocks in ``run_dir``'s block_models/ folder and load them from there."""
+        self.model.attach_block_store(block_models_dir(run_dir))
+
+    def finish_phase(self, phase: Phase) -> None:
+        """A phase has ended: a block's weights go to their file and leave memory, with its images."""
+        if phase.block is None:
+            return
+        path = self.model.store_block(phase.block)
+        CONSOLE.log(f"phase {phase.name} done: its model saved to {path} and released from memory")
+        if self._block_datamanager_index == phase.block:
+            self._block_datamanager, self._block_datamanager_index = None, None
+            gc.collect()
 
     def get_train_loss_dict(self, step: int):
         """One training batch of the phase at ``step``, through that phase's model."""

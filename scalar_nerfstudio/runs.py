@@ -5,7 +5,11 @@ A run folder (``OUTPUT/EXPERIMENT/METHOD/TIMESTAMP``) holds
 
 * ``config.yml``: the trainer config (nerfstudio's, YAML with Python tags);
 * ``blocks.json``: the run's block plan (``blocks/plan.py``), written once when training starts;
-* ``nerfstudio_models/step-NNNNNNNNN.ckpt``: checkpoints (nerfstudio's names), written atomically;
+* ``nerfstudio_models/step-NNNNNNNNN.ckpt``: checkpoints (nerfstudio's names), written atomically:
+  the global model and the block that trains (or last trained); a finished block's tensors are
+  empty there, its weights are in
+* ``block_models/block-NNNN.ckpt``: one file per finished block, written atomically when its phase
+  ends (so memory and checkpoints do not grow with the number of blocks);
 * ``dataparser_transforms.json``, ``model_report.json`` and, for an assembled run, ``assembled_from.json``.
 """
 
@@ -30,6 +34,7 @@ CONFIG_NAME = "config.yml"
 BLOCKS_JSON_NAME = "blocks.json"
 REPORT_NAME = "model_report.json"
 ASSEMBLED_FROM_NAME = "assembled_from.json"
+BLOCK_MODELS_DIR = "block_models"
 CHECKPOINT_PATTERN = re.compile(r"^step-(\d{9})\.ckpt$")
 PARTIAL_SUFFIX = ".ckpt.partial"
 
@@ -94,6 +99,16 @@ def blocks_json_path(run_dir: Path) -> Path:
     return Path(run_dir) / BLOCKS_JSON_NAME
 
 
+def block_models_dir(run_dir: Path) -> Path:
+    """Where a run keeps its finished blocks' weights, one file per block."""
+    return Path(run_dir) / BLOCK_MODELS_DIR
+
+
+def block_model_path(block_dir: Path, block: int) -> Path:
+    """Block ``block``'s file in a run's :func:`block_models_dir`."""
+    return Path(block_dir) / f"block-{block:04d}.ckpt"
+
+
 def latest_checkpoint(run_dir: Path, config: Any) -> Path:
     """The newest checkpoint of a run, given its folder and config."""
     checkpoint_dir = Path(run_dir) / config.relative_model_dir
@@ -144,7 +159,8 @@ def merge_block_states(global_state: Dict[str, torch.Tensor], block_states: Dict
     """The global run's pipeline state with block k's weights taken from ``block_states[k]``.
 
     Every block given is marked as started (it will be fused); a block not given keeps what the
-    global run has for it (trained there, or not started and so not fused).
+    global run has for it (trained there, or not started and so not fused). A tensor the global run
+    holds empty (a block kept in its file, or never started) takes the block run's shape.
     """
     from scalar_nerfstudio.models.scene_model import ScalarSceneModel
 
@@ -159,12 +175,38 @@ def merge_block_states(global_state: Dict[str, torch.Tensor], block_states: Dict
         if missing:
             raise AssembleError(f"block {block}: the block run lacks {len(missing)} tensors, e.g. {sorted(missing)[0]}")
         for key, value in weights.items():
-            if key in merged and merged[key].shape != value.shape:
+            if key in merged and merged[key].numel() > 0 and merged[key].shape != value.shape:
                 raise AssembleError(f"block {block}: {key} has shape {list(value.shape)}, the global run {list(merged[key].shape)}")
             merged[key] = value
         started[block] = True
     merged[started_key] = started
     return merged
+
+
+def _move_blocks_to_files(merged: Dict[str, torch.Tensor], global_dir: Path, run_dir: Path) -> None:
+    """Every started block of the assembled run goes to its own file in ``run_dir``'s block_models/
+    (its tensors in ``merged`` become empty), so loading the run holds a bounded number of blocks in
+    memory: weights present in ``merged`` are written out, and the global run's block files are copied."""
+    from scalar_nerfstudio.models.block_memory import save_block_file
+    from scalar_nerfstudio.models.scene_model import ScalarSceneModel
+
+    started = merged[ScalarSceneModel.started_key()].tolist()
+    for block, is_started in enumerate(started):
+        if not is_started:
+            continue
+        keys = ScalarSceneModel.block_keys(merged, block)
+        target = block_model_path(block_models_dir(run_dir), block)
+        if keys and any(merged[k].numel() > 0 for k in keys):
+            head = f"{ScalarSceneModel.PIPELINE_KEY_PREFIX}blocks.{block}."
+            save_block_file(target, block, {k[len(head):]: merged[k] for k in keys})
+            for key in keys:
+                merged[key] = merged[key].new_empty(0)
+        else:
+            source = block_model_path(block_models_dir(global_dir), block)
+            if not source.is_file():
+                raise AssembleError(f"block {block}: {global_dir} says it trained, but {source} is missing")
+            target.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(source, target)
 
 
 def assemble(global_run: Path, block_runs: List[Path], output_dir: Optional[Path] = None) -> Path:
@@ -200,6 +242,7 @@ def assemble(global_run: Path, block_runs: List[Path], output_dir: Optional[Path
             shutil.copy2(global_dir / name, run_dir / name)
     if getattr(global_config.pipeline, "run_plan", None) is not None:
         global_config.pipeline.run_plan = blocks_json_path(run_dir).resolve()  # the copy: the new run is self-contained
+    _move_blocks_to_files(merged, global_dir, run_dir)
     atomic_torch_save({"step": state["step"], "pipeline": merged}, model_dir / checkpoint_name(state["step"]))
     save_run_config(global_config, run_dir)
     atomic_write_text(

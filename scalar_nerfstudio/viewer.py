@@ -7,7 +7,11 @@
 * the ``block_colour`` output (chosen in the viewer's output dropdown) is made by the model: each
   pixel in the colour of the block that won it (grey: the global model).
 
-Both are found by nerfstudio's viewer because they are attributes of the pipeline.
+* :class:`CoarseFirstRender`: a still view of a CPU model is rendered coarse first, then at full
+  size (``viewer_render.py``).
+
+All are found by nerfstudio's viewer because they are attributes of the pipeline (``ViewerControl``
+objects are handed the viewer object by ``ViewerControl._setup``).
 """
 
 from __future__ import annotations
@@ -48,6 +52,17 @@ def box_edges(aabb_min: Sequence[float], aabb_max: Sequence[float]) -> np.ndarra
     corners = np.array([[(aabb_max if (i >> a) & 1 else aabb_min)[a] for a in range(3)] for i in range(8)], dtype=np.float64)
     edges = [(i, i | (1 << a)) for i in range(8) for a in range(3) if not (i >> a) & 1]
     return np.stack([corners[[i, j]] for i, j in edges])
+
+
+class CoarseFirstRender(ViewerControl):
+    """Makes the viewer render a still view of a CPU model coarse first, then at full size (GPU models
+    keep nerfstudio's renders); see ``viewer_render.py``."""
+
+    def _setup(self, viewer) -> None:  # called by nerfstudio's Viewer once the server runs
+        super()._setup(viewer)
+        from scalar_nerfstudio.viewer_render import install_progressive_render  # imports nerfstudio's viewer (slow)
+
+        install_progressive_render(viewer)
 
 
 class BlockOverlay(ViewerControl):

@@ -10,7 +10,7 @@ import sys
 import time
 import urllib.request
 from pathlib import Path
-from typing import List, Optional
+from typing import Dict, List, Optional
 
 import pytest
 import torch
@@ -211,3 +211,20 @@ def tiny_trainer(scene: Path, output_dir: Path, log2_hashmap_size: int = 14, ray
     trainer = config.setup(local_rank=0, world_size=1)
     trainer.setup()
     return trainer
+
+
+def trained_block_tensors(run: Path, block: int) -> Dict[str, torch.Tensor]:
+    """Block ``block``'s weights as a run holds them (keys ``field.encoder.table`` ...): from its newest
+    checkpoint when they are there, else from the run's per-block file (a finished block)."""
+    from scalar_nerfstudio.runs import block_model_path, block_models_dir
+
+    step = latest_checkpoint_step(run / "nerfstudio_models")
+    assert step is not None, f"{run}: no checkpoint"
+    state = torch.load(run / "nerfstudio_models" / f"step-{step:09d}.ckpt", map_location="cpu", weights_only=True)["pipeline"]
+    head = f"_model.blocks.{block}."
+    tensors = {k[len(head):]: v for k, v in state.items() if k.startswith(head)}
+    if any(v.numel() > 0 for v in tensors.values()):
+        return tensors
+    saved = torch.load(block_model_path(block_models_dir(run), block), map_location="cpu", weights_only=True)
+    assert saved["block"] == block
+    return saved["state"]

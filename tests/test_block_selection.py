@@ -115,15 +115,16 @@ def _scene_model(fusion: str, blocks_per_ray: int) -> ScalarSceneModel:
         for k, x in enumerate((-0.6, 0.0, 0.6))
     )
     config = ScalarSceneModelConfig(field=ScalarFieldConfig(**SMALL_FIELD), fusion=fusion, blocks_per_ray=blocks_per_ray,
-                                    num_samples_per_ray=32, render_normals="never")
+                                    num_samples_per_ray=32, render_normals="never", seed_block_occupancy=False)
     model = ScalarSceneModel(config=config, scene_box=SceneBox(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3])), num_train_data=2,
                              split=BlockSplit(blocks=blocks, aabb_scale=(1.0, 1.0, 1.0), seed=0))
+    for block in range(3):
+        model.begin_block(block)  # weights in memory
     with torch.no_grad():
         for index, sub in enumerate([model.global_model, *model.blocks.values()]):
             generator = torch.Generator().manual_seed(index)
             for parameter in sub.field.parameters():
                 parameter.copy_(torch.randn(parameter.shape, generator=generator) * (2.0 if parameter.ndim == 2 and parameter.shape[1] > 8 else 0.3))
-    model.blocks_started[:] = True
     return model.eval()
 
 

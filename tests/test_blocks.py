@@ -17,7 +17,7 @@ import torch
 import yaml
 from nerfstudio.cameras.rays import RayBundle
 
-from conftest import BLOCK_STEPS, tiny_trainer, CASTLE, NUM_BLOCKS, free_port, ns_eval, requires_castle, run_dirs, sigkill_after_checkpoint
+from conftest import BLOCK_STEPS, trained_block_tensors, tiny_trainer, CASTLE, NUM_BLOCKS, free_port, ns_eval, requires_castle, run_dirs, sigkill_after_checkpoint
 from scalar_nerfstudio.blocks.split import load_blocks_json, split_cameras
 from scalar_nerfstudio.runs import latest_checkpoint_step
 from scalar_nerfstudio.method_configs import scalar_nerf
@@ -70,12 +70,17 @@ def test_full_run_writes_split_and_trains_every_block(full_run: Path, scene: Pat
     state = _pipeline_state(full_run)
     assert state["_model.blocks_started"].tolist() == [True] * NUM_BLOCKS
     global_decoder = _decoder(state, "global_model")
+    # the finished block 0 lives in its own file, the last one (block 1) in the checkpoint
+    assert state["_model.blocks.0.field.encoder.table"].numel() == 0 and (full_run / "block_models" / "block-0000.ckpt").is_file()
+    assert state["_model.blocks.1.field.encoder.table"].numel() > 0 and not (full_run / "block_models" / "block-0001.ckpt").exists()
     for block in range(NUM_BLOCKS):
-        block_decoder = _decoder(state, f"blocks.{block}")
+        tensors = trained_block_tensors(full_run, block)
+        block_decoder = {k[len("field.decoder."):]: v for k, v in tensors.items() if k.startswith("field.decoder.")}
         # fine-tuned from the global decoder at lr 5e-5: moved, but only a little
         difference = max(float((block_decoder[k] - global_decoder[k]).abs().max()) for k in global_decoder)
         assert 0.0 < difference < 0.05
-        assert not torch.equal(state[f"_model.blocks.{block}.field.encoder.table"], state["_model.global_model.field.encoder.table"])
+        assert tensors["field.encoder.table"].shape != state["_model.global_model.field.encoder.table"].shape or not torch.equal(
+            tensors["field.encoder.table"], state["_model.global_model.field.encoder.table"])
 
 
 @pytest.mark.slow
@@ -99,13 +104,23 @@ def _decoder_params(model) -> List[torch.Tensor]:
 
 
 @pytest.mark.parametrize("mode", ["frozen", "finetune", "independent"])
-def test_decoder_modes(scene: Path, tmp_path: Path, mode: str) -> None:
+def test_decoder_modes(scene: Path, tmp_path: Path, mode: str, monkeypatch: pytest.MonkeyPatch) -> None:
     trainer = _trainer(scene, tmp_path, decoder_mode=mode)
     model = trainer.pipeline.model
-    block = model.phase_model(0)
-    fresh = _decoder_params(block)
+    started: Dict[str, List[torch.Tensor]] = {}
+    begin_block = model.begin_block
+
+    def begin_and_record(index: int) -> None:  # the decoder block 0 starts its phase with
+        first = not bool(model.blocks_started[index])
+        begin_block(index)
+        if first and index == 0:
+            started["fresh"] = _decoder_params(model.phase_model(0))
+
+    monkeypatch.setattr(model, "begin_block", begin_and_record)
     trainer.train()
+    fresh = started["fresh"]
     global_decoder = _decoder_params(model.global_model)
+    block = model.resident_block(0)  # loaded back from its file
     trained = _decoder_params(block)
     if mode == "frozen":
         assert all(torch.equal(a, b) for a, b in zip(trained, global_decoder)), "a frozen decoder stays the global one"
@@ -193,13 +208,11 @@ def test_two_block_processes_at_once_then_assemble(full_run: Path, tmp_path: Pat
     )
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     (assembled,) = run_dirs(tmp_path / "assembled")
-    state = _pipeline_state(assembled)
     for block_run in block_runs:
         block = yaml.load((block_run / "config.yml").read_text(), Loader=yaml.Loader).pipeline.only_block
-        block_state = _pipeline_state(block_run)
-        key = f"_model.blocks.{block}.field.encoder.table"
-        assert torch.equal(state[key], block_state[key])
-        assert not torch.equal(state[key], _pipeline_state(full_run)[key])
+        table = trained_block_tensors(assembled, block)["field.encoder.table"]
+        assert torch.equal(table, trained_block_tensors(block_run, block)["field.encoder.table"])
+        assert not torch.equal(table, trained_block_tensors(full_run, block)["field.encoder.table"])
     output = tmp_path / "eval.json"
     evaluation = ns_eval(assembled, output)
     assert evaluation.returncode == 0, evaluation.stdout[-3000:] + evaluation.stderr[-3000:]

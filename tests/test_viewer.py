@@ -17,7 +17,7 @@ import torch
 from conftest import NUM_BLOCKS, free_port
 from scalar_nerfstudio.blocks.palette import BLOCK_PALETTE, block_colour
 from scalar_nerfstudio.blocks.split import split_cameras
-from scalar_nerfstudio.viewer import BlockOverlay, box_edges, fusion_options
+from scalar_nerfstudio.viewer import BlockOverlay, CoarseFirstRender, box_edges, fusion_options
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 CHROMEDRIVER = shutil.which("chromedriver")
@@ -86,6 +86,19 @@ def test_block_overlay_keeps_its_scene_nodes_to_hide_restyle_and_remove() -> Non
     drawn = overlay.handles
     overlay.remove()
     assert overlay.handles == [] and all(node.removed for node in drawn)
+
+
+def test_coarse_first_render_control_makes_the_viewer_render_cpu_models_coarse_first() -> None:
+    """The pipeline's CoarseFirstRender control is handed the viewer: it installs viewer_render.py's
+    machines for a CPU model and leaves a GPU model's viewer as nerfstudio made it."""
+    from scalar_nerfstudio.viewer_render import ProgressiveMachines
+
+    for device, progressive in (("cpu", True), ("cuda", False)):
+        viewer = _FakeViewer()
+        viewer.render_statemachines = {}
+        viewer.get_model = lambda device=device: type("Model", (), {"device": torch.device(device)})()
+        CoarseFirstRender()._setup(viewer)
+        assert isinstance(viewer.render_statemachines, ProgressiveMachines) is progressive
 
 
 # --------------------------------------------------------------------- the trained run

@@ -19,7 +19,7 @@ import sys
 import time
 from copy import deepcopy
 from pathlib import Path
-from typing import Any, Dict, List
+from typing import Any, Dict, List, Tuple
 
 import torch
 
@@ -99,12 +99,15 @@ def _evaluate(pipeline) -> Dict[str, float]:
     return result
 
 
-def _trained_modules(model) -> List[torch.nn.Module]:
-    """The models a run trained: the global model and the started blocks (a global-only run still
-    allocates unstarted block tables for later ``scalar-nerf-block`` runs; they are not counted)."""
+def _trained_parameters(model) -> Tuple[int, float]:
+    """(parameters, MiB as float32) of the models a run trained: the global model and the started
+    blocks, whether or not their weights are in memory (a finished block lives in its file)."""
     if not hasattr(model, "global_model"):
-        return [model]
-    return [model.global_model, *(model.blocks[str(k)] for k in model.started_block_ids())]
+        params = list(model.parameters())
+        return sum(p.numel() for p in params), tensor_bytes(params) / MIB
+    count = sum(p.numel() for p in model.global_model.parameters())
+    count += sum(model.block_parameter_count(k) for k in model.started_block_ids())
+    return count, count * 4 / MIB
 
 
 def run(spec: Dict[str, Any]) -> Dict[str, Any]:
@@ -147,7 +150,7 @@ def run(spec: Dict[str, Any]) -> Dict[str, Any]:
         pipeline.model.set_fusion(mode)
         finals[mode] = _evaluate(pipeline)
     model = pipeline.model
-    trained_params = [p for m in _trained_modules(model) for p in m.parameters()]
+    num_parameters, parameter_mib = _trained_parameters(model)
     rays = pipeline.datamanager.get_train_rays_per_batch()
     result = {
         "name": spec["name"],
@@ -158,8 +161,8 @@ def run(spec: Dict[str, Any]) -> Dict[str, Any]:
         "curve": curve,
         "final": curve[-1] if curve else {},
         "fusions": finals,
-        "parameters": sum(p.numel() for p in trained_params),
-        "parameter_mib": tensor_bytes(trained_params) / MIB,
+        "parameters": num_parameters,
+        "parameter_mib": parameter_mib,
         "peak_rss_mib": peak_memory_mib("cpu")["peak_rss_mib"],
         "threads": torch.get_num_threads(),
         "run_dir": str(trainer.base_dir),

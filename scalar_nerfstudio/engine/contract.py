@@ -24,6 +24,12 @@ class PhasedPipeline(Protocol):
     def phase_at(self, step: int) -> Any:
         """The phase (``start_step``, ``num_steps``, ``end_step``) that trains at ``step``."""
 
+    def finish_phase(self, phase: Any) -> None:
+        """Called once when ``phase`` has trained its last step, before the checkpoint written then."""
+
+    def attach_run_dir(self, run_dir: Any) -> None:
+        """The run folder the pipeline keeps its per-block files in."""
+
     def param_group_phases(self) -> Dict[str, Tuple[str, Optional[Any]]]:
         """For each optimiser parameter group: (its template key in ``optimizers``, its phase)."""
 

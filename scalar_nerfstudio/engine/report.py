@@ -41,30 +41,39 @@ def peak_memory_mib(device: torch.device | str) -> Dict[str, float]:
     return peak
 
 
-def model_entry(name: str, model: Any, optimizers: Iterable[torch.optim.Optimizer], trained: bool) -> Dict[str, Any]:
-    """One row of the report for a :class:`ScalarModel` (global or block)."""
+def model_entry(name: str, model: Any, optimizers: Iterable[torch.optim.Optimizer], trained: bool,
+                parameter_count: Optional[Dict[str, int]] = None) -> Dict[str, Any]:
+    """One row of the report for a :class:`ScalarModel` (global or block).
+
+    ``parameter_count`` ({"all": n, "encoder": n}) gives the sizes of a model whose weights are not in
+    memory (a finished block kept in its file): its memory and occupancy then read 0 and None."""
     params = list(model.parameters())
     encoder = model.field.encoder
+    in_memory = parameter_count is None
     return {
         "model": name,
         "trained": trained,
-        "parameters": sum(p.numel() for p in params),
+        "in_memory": in_memory,
+        "parameters": sum(p.numel() for p in params) if in_memory else parameter_count["all"],
         "parameter_mib": tensor_bytes(params) / MIB,
         "optimizer_state_mib": optimizer_state_bytes(optimizers, params) / MIB,
         "log2_hashmap_size": int(model.field.config.log2_hashmap_size),
         "max_resolution": int(model.field.config.max_resolution),
-        "encoder_parameters": sum(p.numel() for p in encoder.parameters()),
-        "occupied_fraction": float(model.occupancy.occupied_fraction()),
+        "encoder_parameters": sum(p.numel() for p in encoder.parameters()) if in_memory else parameter_count["encoder"],
+        "occupied_fraction": float(model.occupancy.occupied_fraction()) if in_memory else None,
     }
 
 
 def scene_model_report(scene_model: Any, optimizers: Iterable[torch.optim.Optimizer], device: torch.device | str) -> Dict[str, Any]:
-    """Report of a :class:`ScalarSceneModel`: one entry per model, totals and peak memory."""
+    """Report of a :class:`ScalarSceneModel`: one entry per model, totals and peak memory (a block kept
+    in its file counts its parameters, with 0 MiB in memory)."""
     optimizers = list(optimizers)
     started = set(scene_model.started_block_ids())
     models = [model_entry("global", scene_model.global_model, optimizers, trained=True)]
     for index in scene_model.block_ids:
-        models.append(model_entry(f"block {index}", scene_model.blocks[str(index)], optimizers, trained=index in started))
+        count = None if scene_model.block_is_resident(index) else {
+            "all": scene_model.block_parameter_count(index), "encoder": scene_model.block_parameter_count(index, "encoder")}
+        models.append(model_entry(f"block {index}", scene_model.blocks[str(index)], optimizers, trained=index in started, parameter_count=count))
     return {
         "models": models,
         "total_parameters": sum(m["parameters"] for m in models),
@@ -80,9 +89,10 @@ def format_report(report: Dict[str, Any]) -> str:
         f"{'model':<10} {'log2 T':>6} {'max res':>7} {'params':>12} {'MiB':>8} {'Adam MiB':>9} {'occupied':>8}",
     ]
     for m in report["models"]:
+        occupied = "on disk" if m.get("occupied_fraction") is None else f"{m['occupied_fraction']:.1%}"
         lines.append(
             f"{m['model']:<10} {m['log2_hashmap_size']:>6} {m['max_resolution']:>7} {m['parameters']:>12,} "
-            f"{m['parameter_mib']:>8.1f} {m['optimizer_state_mib']:>9.1f} {m['occupied_fraction']:>8.1%}"
+            f"{m['parameter_mib']:>8.1f} {m['optimizer_state_mib']:>9.1f} {occupied:>8}"
         )
     lines.append(
         f"{'total':<10} {'':>6} {'':>7} {report['total_parameters']:>12,} {report['total_parameter_mib']:>8.1f} "

@@ -131,6 +131,7 @@ class ScalarTrainer(Trainer):
     def setup(self, test_mode: Literal["test", "val", "inference"] = "val") -> None:
         super().setup(test_mode=test_mode)
         pipeline = self.phased_pipeline
+        pipeline.attach_run_dir(self.base_dir)
         if self.config.max_num_iterations <= 0:
             self.config.max_num_iterations = pipeline.total_steps
         # nerfstudio's step log (ETA, % done) was set up in Trainer.__init__, before the phases were
@@ -191,8 +192,10 @@ class ScalarTrainer(Trainer):
         if every > 0 and ((step + 1) % every == 0 or step + 1 == self._total_steps):
             path, psnr = write_preview(self.pipeline, self.base_dir, step)
             CONSOLE.print(f"step {step + 1}: preview (render | ground truth, eval view 0, {psnr:.2f} dB) written to {path}")
-        if step + 1 == self.phased_pipeline.phase_at(step).end_step and step + 1 < self._total_steps:
+        phase = self.phased_pipeline.phase_at(step)
+        if step + 1 == phase.end_step and step + 1 < self._total_steps:
             self.release_finished_optimizer_state(step + 1)
+            self.phased_pipeline.finish_phase(phase)  # a block's weights to their own file, out of memory
             self.save_checkpoint(step)
         return result
 

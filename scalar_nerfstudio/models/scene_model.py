@@ -9,7 +9,8 @@ global model and the blocks that have started training, and fuses them per pixel
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Dict, List, Literal, Optional, Tuple, Type
+from pathlib import Path
+from typing import Any, Dict, List, Literal, Optional, Tuple, Type
 
 import torch
 from nerfstudio.cameras.cameras import Cameras
@@ -33,6 +34,17 @@ from scalar_nerfstudio.fusion import (
     weights_winner,
 )
 from scalar_nerfstudio.metrics import psnr
+from scalar_nerfstudio.models.block_memory import (
+    ResidentBlocks,
+    TensorSpec,
+    install_tensors,
+    is_released_state,
+    load_block_file,
+    release_tensors,
+    save_block_file,
+    spec_numel,
+)
+from scalar_nerfstudio.runs import block_model_path
 from scalar_nerfstudio.model_components.rendering import facing_normals, normals_from_unit_interval, normals_to_unit_interval, safe_normalise
 from scalar_nerfstudio.models.scalar_model import NormalsOutput, ScalarModel, ScalarModelConfig, near_far_collider
 from scalar_nerfstudio.blocks.palette import BLOCK_PALETTE, GLOBAL_COLOUR
@@ -66,6 +78,10 @@ class ScalarSceneModelConfig(ScalarModelConfig):
     model's depth gives (``global``, ``idw``, ``surface``; ``nearest`` renders one). The render cost is
     then the global model's plus this many blocks', whatever the number of blocks. 0: every block on
     every ray (the paper's ``global`` rule over all blocks; cost grows with K)."""
+    max_resident_blocks: int = 8
+    """Finished blocks are kept on disk (RUN/block_models/) and loaded when a render needs them; at
+    most this many loaded blocks stay in memory at once (least recently used ones are released).
+    The block that trains is always in memory besides them."""
 
 
 def block_region(block: Block) -> Tuple[Tuple[float, float, float], float]:
@@ -136,16 +152,18 @@ class ScalarSceneModel(NormalsOutput, Model):
         self.rays_rendered_by_block: Dict[int, int] = {}
         """Rays each block rendered since the last camera started (for reports)."""
         self.global_model = ScalarModel(config=self.config, scene_box=self.scene_box, num_train_data=self.num_train_data)
-        capacities: Dict[int, BlockCapacity] = self.kwargs.get("block_capacities") or {}
+        self._block_capacities: Dict[int, BlockCapacity] = self.kwargs.get("block_capacities") or {}
+        self._num_block_images = num_images
+        self._block_specs: Dict[int, Dict[str, TensorSpec]] = {}
+        """Shape and dtype of each block model's tensors (its shell holds them empty until needed)."""
         blocks = {}
         for index in self.block_ids:
-            centre, radius = block_region(self.split.blocks[index]) if self.block_init == "fresh" else ((0.0, 0.0, 0.0), 1.0)
-            blocks[str(index)] = ScalarModel(
-                config=self._block_config(capacities.get(index)), scene_box=self.scene_box, num_train_data=num_images[index],
-                region_centre=centre, region_radius=radius,
-            )
+            model = self._new_block_model(index)
+            self._block_specs[index] = {key: (t.shape, t.dtype) for key, t in model.state_dict().items()}
+            release_tensors(model)  # one block at a time in memory: built, measured, emptied
             if self.decoder_mode == "frozen":
-                blocks[str(index)].field.decoder.requires_grad_(False)
+                model.field.decoder.requires_grad_(False)
+            blocks[str(index)] = model
         self.blocks = nn.ModuleDict(blocks)
         # Which blocks have started training (their decoder was initialised); saved in checkpoints.
         self.register_buffer("blocks_started", torch.zeros(self.split.num_blocks, dtype=torch.bool))
@@ -154,6 +172,20 @@ class ScalarSceneModel(NormalsOutput, Model):
         )
         self.register_buffer(
             "block_radii", torch.tensor([block_region(b)[1] for b in self.split.blocks], dtype=torch.float32), persistent=False
+        )
+        self.resident = ResidentBlocks(self.config.max_resident_blocks)
+        """Blocks whose weights are in memory (the others' tensors are empty; see block_memory.py)."""
+        self.block_store: Optional[Path] = None
+        """The run's block_models/ folder (:meth:`attach_block_store`); None: blocks are never stored."""
+        self._stored: set = set()
+        """Blocks whose current weights are in their file in :attr:`block_store`."""
+
+    def _new_block_model(self, index: int) -> ScalarModel:
+        """Block ``index``'s model, freshly initialised (its own frame, or the global one)."""
+        centre, radius = block_region(self.split.blocks[index]) if self.block_init == "fresh" else ((0.0, 0.0, 0.0), 1.0)
+        return ScalarModel(
+            config=self._block_config(self._block_capacities.get(index)), scene_box=self.scene_box,
+            num_train_data=self._num_block_images[index], region_centre=centre, region_radius=radius,
         )
 
     def _block_config(self, capacity: Optional[BlockCapacity]) -> ScalarModelConfig:
@@ -184,23 +216,125 @@ class ScalarSceneModel(NormalsOutput, Model):
         """The key of the ``blocks_started`` flags in a pipeline checkpoint's ``pipeline`` state."""
         return f"{cls.PIPELINE_KEY_PREFIX}blocks_started"
 
+    # ------------------------------------------------------------------- blocks in memory and on disk
+    def attach_block_store(self, directory: Path) -> None:
+        """Keep finished blocks in ``directory`` (the run's ``block_models/``) and load them from there."""
+        self.block_store = Path(directory)
+
+    def block_is_resident(self, block: int) -> bool:
+        """Whether block ``block``'s weights are in memory (else its shell's tensors are empty)."""
+        return block in self.resident
+
+    def block_parameter_count(self, block: int, part: Optional[str] = None) -> int:
+        """Parameters of block ``block``'s model (of its ``encoder``/``decoder``/``appearance`` when
+        ``part`` is given), whether or not they are in memory."""
+        head = "field." if part is None else f"field.{part}."
+        specs = self._block_specs[block]
+        return spec_numel(specs, [k for k in specs if k.startswith(head)])
+
+    def _install_block(self, block: int, state: Dict[str, Tensor], what: str, evictable: bool) -> None:
+        install_tensors(self.blocks[str(block)], state, self._block_specs[block], what)
+        self.resident.add(block, evictable)
+        for other in self.resident.over_limit(keep=block):
+            self.release_block(other)
+
+    def release_block(self, block: int) -> None:
+        """Free block ``block``'s weights from memory (it must be in its file, or not started)."""
+        if bool(self.blocks_started[block]) and block not in self._stored:
+            raise RuntimeError(f"block {block} is trained but not saved to its file: releasing it would lose it")
+        release_tensors(self.blocks[str(block)])
+        self.resident.discard(block)
+
+    def store_block(self, block: int) -> Path:
+        """Write block ``block``'s weights to its file (atomically) and free them from memory: its
+        phase is over. Returns the file."""
+        if self.block_store is None:
+            raise RuntimeError("no block store attached (attach_block_store): the block's weights would be lost")
+        path = block_model_path(self.block_store, block)
+        save_block_file(path, block, self.blocks[str(block)].state_dict())
+        self._stored.add(block)
+        self.release_block(block)
+        return path
+
+    def resident_block(self, block: int) -> ScalarModel:
+        """Block ``block``'s model with its weights in memory: loaded from its file if they are not
+        (then at most :attr:`max_resident_blocks` loaded blocks stay, least recently used released)."""
+        if block in self.resident:
+            self.resident.touch(block)
+        elif block in self._stored:
+            assert self.block_store is not None
+            path = block_model_path(self.block_store, block)
+            self._install_block(block, load_block_file(path, block), f"block {block} from {path}", evictable=True)
+        else:
+            raise RuntimeError(f"block {block} has no weights: it has not started training")
+        return self.blocks[str(block)]
+
+    def state_dict(self, *args: Any, destination: Any = None, prefix: str = "", keep_vars: bool = False) -> Dict[str, Any]:
+        """nn.Module's, with the tensors of blocks kept in their files empty: a checkpoint holds the
+        global model and the blocks that live only in memory (one block's cost, whatever K is)."""
+        state = super().state_dict(*args, destination=destination, prefix=prefix, keep_vars=keep_vars)
+        for block in self._stored:
+            head = f"{prefix}blocks.{block}."
+            for key in [k for k in state if k.startswith(head)]:
+                state[key] = state[key].new_empty(0)
+        return state
+
+    def load_state_dict(self, state_dict: Dict[str, Tensor], strict: bool = True, assign: bool = False):  # type: ignore[override]
+        """Load a checkpoint: the global model and the flags as nn.Module does; a block whose weights
+        are in the checkpoint becomes resident, a started block whose tensors are empty there is read
+        from its file when a render needs it (the file must exist: checked here)."""
+        block_states: Dict[int, Dict[str, Tensor]] = {b: {} for b in self.block_ids}
+        rest = {}
+        for key, value in state_dict.items():
+            parts = key.split(".", 2)
+            if parts[0] == "blocks" and len(parts) == 3 and parts[1].isdigit() and int(parts[1]) in block_states:
+                block_states[int(parts[1])][parts[2]] = value
+            else:
+                rest[key] = value
+        block_prefixes = tuple(f"blocks.{b}." for b in self.block_ids)
+        result = super().load_state_dict(rest, strict=False)
+        missing = [k for k in result.missing_keys if not k.startswith(block_prefixes)]
+        if strict and (missing or result.unexpected_keys):
+            raise RuntimeError(f"the checkpoint does not fit the model: missing {missing[:3]}, unexpected {result.unexpected_keys[:3]}")
+        for block, state in block_states.items():
+            self.resident.discard(block)
+            self._stored.discard(block)
+            release_tensors(self.blocks[str(block)])
+            if not bool(self.blocks_started[block]):
+                continue
+            if state and not is_released_state(state):
+                self._install_block(block, state, f"block {block} in the checkpoint", evictable=False)
+            elif self.block_store is not None and not block_model_path(self.block_store, block).is_file():
+                raise FileNotFoundError(
+                    f"the checkpoint says block {block} has trained, but its weights are neither in it nor in "
+                    f"{block_model_path(self.block_store, block)}"
+                )
+            else:
+                self._stored.add(block)
+        return result
+
     # ------------------------------------------------------------------------------ phases
     def phase_model(self, block: Optional[int]) -> ScalarModel:
-        """The model trained in a phase: the global model (block None) or block ``block``'s."""
+        """The model trained in a phase: the global model (block None) or block ``block``'s (with its
+        weights in memory once :meth:`begin_block` has started it)."""
         if block is None:
             return self.global_model
         if str(block) not in self.blocks:
             raise KeyError(f"block {block} is not held by this model (it holds {list(self.block_ids)})")
-        return self.blocks[str(block)]
+        return self.resident_block(block) if bool(self.blocks_started[block]) else self.blocks[str(block)]
 
     @torch.no_grad()
     def begin_block(self, block: int) -> None:
-        """Start block ``block``'s phase once: copy the global decoder into it (finetune / frozen); with
-        ``block_init`` global, also the global table, occupancy grid and the block's images' appearance
-        embeddings (the block starts as the global model); else, with :attr:`seed_block_occupancy`, mark
-        its occupancy grid from the global model's density."""
+        """Start block ``block``'s phase once: give it freshly initialised weights in memory and copy
+        the global decoder into it (finetune / frozen); with ``block_init`` global, also the global
+        table, occupancy grid and the block's images' appearance embeddings (the block starts as the
+        global model); else, with :attr:`seed_block_occupancy`, mark its occupancy grid from the
+        global model's density."""
         if bool(self.blocks_started[block]):
             return
+        fresh = self._new_block_model(block).to(self.blocks_started.device)
+        self._install_block(block, fresh.state_dict(), f"block {block} (fresh)", evictable=False)
+        del fresh
         model = self.blocks[str(block)]
         if self.decoder_mode != "independent":
             model.field.decoder.load_state_dict(self.global_model.field.decoder.state_dict())
@@ -334,7 +468,9 @@ class ScalarSceneModel(NormalsOutput, Model):
 
     def _render_block_rays(self, block: int, ray_bundle: RayBundle, rays: Tensor, normals: bool) -> Dict[str, Tensor]:
         """Block ``block``'s render of the rays where ``rays`` [R] is True; NaN on the others."""
-        return self._render_subset(self.blocks[str(block)], ray_bundle, rays, normals, block)
+        if not bool(rays.any()):
+            return self._render_subset(self.blocks[str(block)], ray_bundle, rays, normals, block)  # NaN, no weights needed
+        return self._render_subset(self.resident_block(block), ray_bundle, rays, normals, block)
 
     def _render_global_rays(self, ray_bundle: RayBundle, rays: Tensor, normals: bool) -> Dict[str, Tensor]:
         """The global model's render of the rays where ``rays`` [R] is True; NaN on the others."""
