@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import copy
 import subprocess
 import sys
@@ -47,3 +48,12 @@ def test_device_and_mixed_precision_follow_the_machine(monkeypatch, cuda: bool, 
     resolve_machine(config)
     assert (config.machine.device_type, config.mixed_precision) == expected
     assert resolve_device_type("auto") == ("cuda" if cuda else "cpu")
+
+
+def test_onednn_kernel_cache_is_limited_unless_the_user_set_it(monkeypatch: pytest.MonkeyPatch) -> None:
+    from scalar_nerfstudio.engine.device import ONEDNN_CACHE_ENV, limit_onednn_kernel_cache
+
+    monkeypatch.delenv(ONEDNN_CACHE_ENV, raising=False)
+    assert limit_onednn_kernel_cache() and os.environ[ONEDNN_CACHE_ENV] == "0"
+    monkeypatch.setenv(ONEDNN_CACHE_ENV, "256")
+    assert not limit_onednn_kernel_cache() and os.environ[ONEDNN_CACHE_ENV] == "256"

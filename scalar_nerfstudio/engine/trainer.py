@@ -17,7 +17,7 @@ from scalar_nerfstudio.blocks.split import BlockSplitError, load_blocks_json
 from scalar_nerfstudio.config_checks import OptionError, check_block_counts, check_block_plan, check_options, check_output_dir
 from scalar_nerfstudio.data.validation import SceneError, scan_scene
 from scalar_nerfstudio.engine.contract import PhasedPipeline
-from scalar_nerfstudio.engine.device import resolve_machine
+from scalar_nerfstudio.engine.device import limit_onednn_kernel_cache, resolve_machine
 from scalar_nerfstudio.engine.preview import write_preview
 from scalar_nerfstudio.engine.report import format_report, scene_model_report, write_report
 from scalar_nerfstudio.engine.schedulers import WarmupExponentialDecaySchedulerConfig
@@ -125,6 +125,7 @@ class ScalarTrainer(Trainer):
 
     def __init__(self, config: ScalarTrainerConfig, local_rank: int = 0, world_size: int = 1) -> None:
         resolve_machine(config)  # device "auto" and mixed precision (CUDA only), before nerfstudio reads them
+        limit_onednn_kernel_cache()  # before the first CPU kernel: memory must not grow with the steps
         super().__init__(config, local_rank, world_size)
         self.thread_governor = ThreadGovernor(enabled=config.adapt_threads and config.machine.device_type == "cpu")
 

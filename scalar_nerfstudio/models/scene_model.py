@@ -399,10 +399,20 @@ class ScalarSceneModel(NormalsOutput, Model):
             # Its normals only where it is the output (with blocks, "global" takes every pixel from a block).
             global_outputs = self.global_model.render_rays(ray_bundle, normals=normals and not block_ids)
             self.rendered_models.add("global")
-        if not block_ids:
-            winner = torch.full_like(global_outputs["accumulation"], -1.0)  # type: ignore[index]
-            return {**global_outputs, "block_winner": winner, "block_colour": self._winner_colours(winner)}  # type: ignore[dict-item]
-        selected, scores = self.select_rays(mode, block_ids, ray_bundle, global_outputs)  # [K', R]
+        if block_ids:
+            selected, scores = self.select_rays(mode, block_ids, ray_bundle, global_outputs)  # [K', R]
+            used = selected.any(dim=1)  # blocks no ray chose take no part at all: the cost is O(chosen), not O(K)
+            if not bool(used.all()):
+                rows = torch.nonzero(used).squeeze(-1)
+                block_ids = [block_ids[i] for i in rows.tolist()]
+                selected = selected[rows]
+                scores = None if scores is None else scores[rows]
+        if not block_ids:  # no block, or none chosen by any ray: the global model's render
+            if global_outputs is None or (normals and "normals" not in global_outputs):
+                global_outputs = self.global_model.render_rays(ray_bundle, normals=normals)
+                self.rendered_models.add("global")
+            winner = torch.full_like(global_outputs["accumulation"], -1.0)
+            return {**global_outputs, "block_winner": winner, "block_colour": self._winner_colours(winner)}
         block_outputs = [self._render_block_rays(b, ray_bundle, selected[i], normals) for i, b in enumerate(block_ids)]
         self.rendered_models.update(b for i, b in enumerate(block_ids) if bool(selected[i].any()))
         rgb_stack = torch.stack([o["rgb"] for o in block_outputs])  # [K', R, 3]
