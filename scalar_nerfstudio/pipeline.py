@@ -21,6 +21,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from torch.cuda.amp.grad_scaler import GradScaler
 
 from scalar_nerfstudio.blocks.capacity import BlockCapacity, LayoutScale, auto_num_blocks, layout_scale
+from scalar_nerfstudio.blocks.observation import block_observation
 from scalar_nerfstudio.blocks.plan import BlockPlan, PlanSettings, load_plan, plan_blocks
 from scalar_nerfstudio.blocks.split import BlockSplit, BlockSplitError, format_split_table, load_blocks_json
 from scalar_nerfstudio.data.datamanager import ScalarDataManagerConfig, camera_centres, camera_layout
@@ -177,6 +178,7 @@ class ScalarPipeline(VanillaPipeline):
             block_capacities=self.plan.capacities,
             decoder_mode=config.decoder_mode,
             block_init=config.block_init,
+            block_observation=self._block_observation(parsed),
         )
         self.model.to(device)
         if config.run_plan is not None:  # a run that has started: its block_models/ are beside its plan
@@ -212,6 +214,16 @@ class ScalarPipeline(VanillaPipeline):
                     f"{len(names)} parsed from {self.config.datamanager.data} (different scene or dataparser options)"
                 )
         return plan_blocks(*camera_layout(parsed), image_names=names, settings=self.config.plan_settings(), given_split=given)
+
+    def _block_observation(self, parsed) -> Optional[torch.Tensor]:
+        """[K, G^3] the cells of a coarse grid each block's training cameras observe (None for K = 1)."""
+        if self.split.num_blocks <= 1:
+            return None
+        cameras = parsed.cameras
+        return block_observation(
+            cameras.camera_to_worlds, cameras.fx.reshape(-1), cameras.fy.reshape(-1), cameras.cx.reshape(-1), cameras.cy.reshape(-1),
+            cameras.width.reshape(-1), cameras.height.reshape(-1), [block.image_indices for block in self.split.blocks],
+        )
 
     @property
     def split(self) -> BlockSplit:

@@ -286,3 +286,20 @@ def test_depth_from_the_occupancy_grid_is_close_to_the_fields() -> None:
     expected = 0.4 / directions[:, 0]
     assert torch.allclose(field, expected, atol=0.03)
     assert (grid - expected).abs().max() < 0.1 and bool(torch.isfinite(grid).all())  # within ~1.5 grid cells (4 / 64 wide)
+
+
+def test_only_blocks_whose_cameras_observe_the_surface_are_chosen_and_unobserved_rays_are_global() -> None:
+    model = _scene_model("surface", blocks_per_ray=1)
+    rays = _rays()
+    observation = torch.ones(3, 8**3, dtype=torch.bool)
+    observation[1] = False  # block 1's cameras see none of the scene
+    model.block_observation = observation
+    with torch.no_grad():
+        model.rays_rendered_by_block = {}
+        model.get_outputs(rays)
+    assert model.rays_rendered_by_block.get(1, 0) == 0 and sum(model.rays_rendered_by_block.values()) == 96
+    model.block_observation = torch.zeros(3, 8**3, dtype=torch.bool)  # no block sees anything
+    with torch.no_grad():
+        fused = model.get_outputs(rays)
+        alone = model.global_model.render_rays(rays, normals=False)
+    assert torch.equal(fused["rgb"], alone["rgb"]) and bool((fused["block_winner"] == -1).all())

@@ -100,3 +100,38 @@ def test_sample_skipping_starts_with_the_grid_pruning_and_is_restored_from_a_che
     restored = _hazy_model(0.01)
     restored.load_state_dict(copy.deepcopy(model.state_dict()))
     assert restored.occupancy.pruning and torch.equal(restored.occupancy.occupied, model.occupancy.occupied)
+
+
+@pytest.mark.parametrize("opacity", [0.3, 3.0])
+def test_rendering_front_to_back_in_segments_gives_the_one_pass_image_with_fewer_evaluations(opacity: float, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Rays that turned opaque stop being evaluated, and the image is the one-pass image."""
+    import scalar_nerfstudio.models.scalar_model as scalar_model_module
+
+    torch.manual_seed(0)
+    model = small_scalar_model()
+    with torch.no_grad():
+        for parameter in model.field.parameters():
+            parameter.copy_(torch.randn(parameter.shape) * (opacity if parameter.ndim == 2 and parameter.shape[1] > 8 else 0.3))
+    model.eval()
+    origins = torch.rand(300, 3) * 0.4 - 0.2
+    rays = ray_bundle(origins, torch.nn.functional.normalize(torch.randn(300, 3), dim=-1))
+    evaluated = []
+    density_at_unit = model.field.density_at_unit
+
+    def counting(unit_positions):
+        evaluated[-1] += unit_positions.shape[0]
+        return density_at_unit(unit_positions)
+
+    monkeypatch.setattr(model.field, "density_at_unit", counting)
+    outputs = {}
+    for segments in (1, 4, 64):
+        monkeypatch.setattr(scalar_model_module, "RENDER_SEGMENTS", segments)
+        evaluated.append(0)
+        with torch.no_grad():
+            outputs[segments] = model.render_rays(rays, normals=False)
+    for segments in (4, 64):
+        for key in ("rgb", "depth", "accumulation", "samples_per_ray"):
+            assert torch.allclose(outputs[segments][key], outputs[1][key], atol=1e-6), (segments, key)
+    assert evaluated[2] <= evaluated[1] <= evaluated[0], evaluated
+    if opacity > 1.0:  # opaque surfaces: the samples behind them are skipped
+        assert evaluated[1] < 0.8 * evaluated[0], evaluated

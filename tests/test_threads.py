@@ -293,6 +293,12 @@ class _OnePhasePipeline:
     def plan_report(self) -> str:
         return ""
 
+    def finish_phase(self, phase: object) -> None:
+        pass
+
+    def attach_run_dir(self, run_dir: object) -> None:
+        pass
+
 
 def _trainer(tmp_path: Path, device: str = "cpu", adapt: bool = True):
     from scalar_nerfstudio.engine.trainer import ScalarTrainer, ScalarTrainerConfig

@@ -16,6 +16,7 @@ Rendering path (per ray batch, flat tensors, no nerfstudio RaySamples on the hot
 
 from __future__ import annotations
 
+import math
 import warnings
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -45,6 +46,8 @@ from scalar_nerfstudio.model_components.rendering import (
 from scalar_nerfstudio.model_components.sampling import OccupancyGrid, lin_disp_spacing, sample_intervals
 
 _CHUNK = 1 << 16
+#: Front-to-back segments of the samples at render time (rays that turned opaque stop being evaluated).
+RENDER_SEGMENTS = 4
 #: Points per autograd pass of the normals (their graph holds ~1.5 kB per point at 16 levels x 4 features).
 _NORMALS_CHUNK = 1 << 15
 #: Samples lighter than this rendering weight get no normal (they add < 1e-4 each to the ray's sum).
@@ -427,13 +430,52 @@ class ScalarModel(NormalsOutput, Model):
     @torch.no_grad()
     def _visible_samples_with_features(self, unit_positions: Tensor, deltas: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
         """:meth:`_visible_samples` without gradients, keeping what the field computed on the way:
-        ([M] flat sample indices, [M] density, [M, F] geometry features)."""
-        candidate_ids = torch.nonzero(self.occupancy.is_occupied(unit_positions)).squeeze(-1)
-        density, geo = self.field.density_at_unit(unit_positions[candidate_ids])
-        if candidate_ids.numel() == 0 or self.config.transmittance_threshold <= 0:
+        ([M] flat sample indices, [M] density, [M, F] geometry features).
+
+        The samples are taken front to back in :data:`RENDER_SEGMENTS` segments along the rays: a
+        segment evaluates only the rays whose transmittance is still above the threshold, so the
+        occupied samples behind a surface are never evaluated (the kept samples and their values are
+        those of one pass over every occupied sample)."""
+        num_rays, num_samples = deltas.shape
+        occupied = self.occupancy.is_occupied(unit_positions).reshape(num_rays, num_samples)
+        threshold = self.config.transmittance_threshold
+        if threshold <= 0 or num_rays == 0:
+            candidate_ids = torch.nonzero(occupied.reshape(-1)).squeeze(-1)
+            density, geo = self.field.density_at_unit(unit_positions[candidate_ids])
             return candidate_ids, density, geo
-        keep = self._kept_candidates(candidate_ids, density, deltas)
-        return candidate_ids[keep], density[keep], geo[keep]
+        log_threshold = math.log(threshold)
+        depth_before = deltas.new_zeros(num_rays)  # [R] optical depth in front of the segment
+        kept_ids: List[Tensor] = []
+        kept_density: List[Tensor] = []
+        kept_geo: List[Tensor] = []
+        bounds = torch.linspace(0, num_samples, min(RENDER_SEGMENTS, num_samples) + 1).round().long().tolist()
+        for start, end in zip(bounds[:-1], bounds[1:]):
+            alive = -depth_before > log_threshold  # [R] light still reaches the segment
+            rays, offsets = torch.nonzero(occupied[:, start:end] & alive[:, None], as_tuple=True)
+            if rays.numel() == 0:
+                if not bool(alive.any()):
+                    break
+                continue
+            ids = rays * num_samples + start + offsets
+            density, geo = self.field.density_at_unit(unit_positions[ids])
+            densities = deltas.new_zeros(num_rays, end - start)
+            densities[rays, offsets] = density.float()
+            alphas = alphas_from_densities(densities, deltas[:, start:end])
+            optical = -torch.log1p(-alphas.clamp(0.0, 1.0 - 1e-7))
+            accumulated = torch.cumsum(optical, dim=-1) + depth_before[:, None]
+            before = torch.cat([depth_before[:, None], accumulated[:, :-1]], dim=-1)  # [R, seg] in front of each sample
+            keep = torch.exp(-before[rays, offsets]) > threshold
+            if self.config.alpha_threshold > 0 and self.occupancy.pruning:
+                keep &= alphas[rays, offsets] > self.config.alpha_threshold
+            kept_ids.append(ids[keep])
+            kept_density.append(density[keep])
+            kept_geo.append(geo[keep])
+            depth_before = accumulated[:, -1]
+        if not kept_ids:
+            empty = unit_positions[:0]
+            density, geo = self.field.density_at_unit(empty)
+            return torch.zeros(0, dtype=torch.long, device=unit_positions.device), density, geo
+        return torch.cat(kept_ids), torch.cat(kept_density), torch.cat(kept_geo)
 
     @torch.no_grad()
     def _kept_candidates(self, candidate_ids: Tensor, density: Tensor, deltas: Tensor) -> Tensor:

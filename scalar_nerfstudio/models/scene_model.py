@@ -20,6 +20,7 @@ from torch import Tensor, nn
 from torch.nn import Parameter
 
 from scalar_nerfstudio.blocks.capacity import BlockCapacity
+from scalar_nerfstudio.blocks.observation import observed_at
 from scalar_nerfstudio.blocks.split import Block, BlockSplit
 from scalar_nerfstudio.fusion import (
     FUSED_KEYS,
@@ -78,6 +79,10 @@ class ScalarSceneModelConfig(ScalarModelConfig):
     model's depth gives (``global``, ``idw``, ``surface``; ``nearest`` renders one). The render cost is
     then the global model's plus this many blocks', whatever the number of blocks. 0: every block on
     every ray (the paper's ``global`` rule over all blocks; cost grows with K)."""
+    observed_blocks_only: bool = True
+    """Choosing blocks per ray, consider only the blocks whose training cameras observe the point at the
+    global depth (blocks/observation.py); a ray no block observes is the global model's. Off: every
+    block's region competes (on inward-looking captures that picks blocks whose cameras look away)."""
     max_resident_blocks: int = 8
     """Finished blocks are kept on disk (RUN/block_models/) and loaded when a render needs them; at
     most this many loaded blocks stay in memory at once (least recently used ones are released).
@@ -126,6 +131,8 @@ class ScalarSceneModel(NormalsOutput, Model):
         decoder_mode: ``finetune`` / ``frozen`` (start from the global decoder) or ``independent``.
         block_init: ``global``: a block model lives in the global model's frame and starts as a copy of
             it (:meth:`begin_block`); ``fresh``: its own frame over its scaled AABB, an empty table.
+        block_observation: [K, G^3] bool, the cells each block's cameras observe
+            (``blocks/observation.py``); None: blocks are chosen by their regions alone.
     """
 
     config: ScalarSceneModelConfig
@@ -173,6 +180,9 @@ class ScalarSceneModel(NormalsOutput, Model):
         self.register_buffer(
             "block_radii", torch.tensor([block_region(b)[1] for b in self.split.blocks], dtype=torch.float32), persistent=False
         )
+        observation = self.kwargs.get("block_observation")
+        self.register_buffer("block_observation", None if observation is None else observation.bool(), persistent=False)
+        """[K, G^3] bool: the cells of a coarse grid each block's cameras observe (None: not known)."""
         self.resident = ResidentBlocks(self.config.max_resident_blocks)
         """Blocks whose weights are in memory (the others' tensors are empty; see block_memory.py)."""
         self.block_store: Optional[Path] = None
@@ -474,7 +484,11 @@ class ScalarSceneModel(NormalsOutput, Model):
             self.rendered_models.add("global")
         points = surface_points(origins, ray_bundle.directions.reshape(-1, 3), global_outputs["depth"])
         scores = region_scores(points, centres, self.block_radii[block_ids].to(origins.device))
-        return select_blocks(scores, limit if limit > 0 else num_blocks), scores
+        usable = None
+        if self.config.observed_blocks_only and self.block_observation is not None:
+            usable = observed_at(self.block_observation[block_ids], points).to(scores.device)  # [K', R]
+            scores = torch.where(usable, scores, torch.full_like(scores, float("inf")))
+        return select_blocks(scores, limit if limit > 0 else num_blocks, usable), scores
 
     def _render_block_rays(self, block: int, ray_bundle: RayBundle, rays: Tensor, normals: bool) -> Dict[str, Tensor]:
         """Block ``block``'s render of the rays where ``rays`` [R] is True; NaN on the others."""
