@@ -93,11 +93,13 @@ class ScalarPipelineConfig(VanillaPipelineConfig):
     decoder_mode: DecoderMode = "finetune"
     """Local decoders: finetune a copy of the global decoder (its lr: --optimizers.block-decoder), keep
     it frozen, or train a fresh one (independent, the paper's "w/o SD" ablation)."""
-    block_init: BlockInit = "fresh"
-    """How a block's model starts: ``fresh``: the paper's, an empty table of its own size over the
-    block's region (only the decoder is copied, see decoder-mode); ``global``: a copy of the trained
-    global model (its frame, table, decoder, occupancy grid and its images' appearance embeddings),
-    fine-tuned on the block's images. (A run's config.yml from before this option loads as fresh.)"""
+    block_init: BlockInit = "global"
+    """How a block's model starts: ``global`` (default): a copy of the trained global model (its frame,
+    table, decoder, occupancy grid and its images' appearance embeddings), fine-tuned on the block's
+    images, so a block starts as good as the global model (castle-P30: every fusion then beats the
+    global model alone, docs/fusion.md); ``fresh``: the paper's, an empty table of its own size over
+    the block's region (only the decoder is copied, see decoder-mode). A run's config.yml from before
+    this option loads as fresh, as it was trained."""
     train_blocks: bool = True
     """False: train the global phase only (blocks can then be trained with scalar-nerf-block)."""
     only_block: Optional[int] = None
@@ -112,6 +114,11 @@ class ScalarPipelineConfig(VanillaPipelineConfig):
     later load of the run (resume, ns-eval, ns-render, the viewer, ns-export) reads K, the split and
     the block capacities back from it instead of deciding them again."""
 
+    def effective_block_init(self) -> BlockInit:
+        """:attr:`block_init`, or ``fresh`` for a config.yml written before the option existed (its
+        blocks were trained fresh; the YAML then has no such key and the class default would apply)."""
+        return self.__dict__.get("block_init", "fresh")
+
     def plan_settings(self) -> PlanSettings:
         """The options a block plan is decided from (blocks/plan.py)."""
         return PlanSettings(
@@ -121,7 +128,7 @@ class ScalarPipelineConfig(VanillaPipelineConfig):
             min_overlap_images=self.min_overlap_images, only_block=self.only_block,
             block_log2_hashmap_size=self.block_log2_hashmap_size, block_log2_hashmap_bounds=tuple(self.block_log2_hashmap_bounds),
             block_max_resolution=self.block_max_resolution, block_max_resolution_bounds=tuple(self.block_max_resolution_bounds),
-            global_max_resolution=self.model.field.max_resolution if self.block_init == "global" else None,
+            global_max_resolution=self.model.field.max_resolution if self.effective_block_init() == "global" else None,
         )
 
     def automatic_num_blocks(self, scale: LayoutScale, num_images: int) -> int:
@@ -177,7 +184,7 @@ class ScalarPipeline(VanillaPipeline):
             block_ids=block_ids,
             block_capacities=self.plan.capacities,
             decoder_mode=config.decoder_mode,
-            block_init=config.block_init,
+            block_init=config.effective_block_init(),
             block_observation=self._block_observation(parsed),
         )
         self.model.to(device)
@@ -351,7 +358,7 @@ class ScalarPipeline(VanillaPipeline):
                 + ("; one model suffices, no block is trained" if self.plan.single_model else "")
             )
         for index, capacity in self.block_capacities.items():
-            start = " (starts as a copy of the global model)" if self.config.block_init == "global" else ""
+            start = " (starts as a copy of the global model)" if self.config.effective_block_init() == "global" else ""
             lines.append(f"block {index}: table 2^{capacity.log2_hashmap_size}, finest resolution {capacity.max_resolution}{start}")
         lines.append("phases: " + ", ".join(f"{p.name}: steps {p.start_step}-{p.end_step - 1}" for p in self.phases if p.num_steps > 0))
         return "\n".join(lines)

@@ -145,7 +145,7 @@ def _tables(trainer) -> dict:
 
 
 def test_pipeline_explicit_settings_win(scene: Path, tmp_path: Path) -> None:
-    trainer = _trainer(scene, tmp_path, num_blocks=3, block_log2_hashmap_size=12, block_max_resolution=128)
+    trainer = _trainer(scene, tmp_path, num_blocks=3, block_log2_hashmap_size=12, block_max_resolution=128, block_init="fresh")
     assert trainer.pipeline.auto_num_blocks is None and trainer.pipeline.split.num_blocks == 3
     assert _tables(trainer) == {"0": (12, 128), "1": (12, 128), "2": (12, 128)}
     for block in trainer.pipeline.model.blocks.values():
@@ -156,7 +156,8 @@ def test_pipeline_explicit_settings_win(scene: Path, tmp_path: Path) -> None:
 
 def test_pipeline_automatic_capacity_within_bounds_and_report(scene: Path, tmp_path: Path) -> None:
     """Automatic K and per-block tables; training ends with model_report.json naming every model."""
-    trainer = _trainer(scene, tmp_path, num_blocks=2, block_log2_hashmap_bounds=(10, 13), block_max_resolution_bounds=(32, 200))
+    trainer = _trainer(scene, tmp_path, num_blocks=2, block_log2_hashmap_bounds=(10, 13), block_max_resolution_bounds=(32, 200),
+                       block_init="fresh")  # per-block capacities are those of fresh blocks (a copy has the global model's)
     tables = _tables(trainer)
     assert set(tables) == {"0", "1"}
     for log2_size, resolution in tables.values():

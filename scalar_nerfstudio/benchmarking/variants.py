@@ -6,11 +6,14 @@ Variants (same scene, same machine, same run; each trains in its own process):
   (``--log2-table T``, default 19; the variant names keep the paper's default T).
 * ``global``: the SCALAR-NeRF global phase (``G`` steps, table 2^T). The block variants below all
   start from this one trained global model (its time is counted in theirs), as in the paper.
-* ``scalar``: K blocks of ``B`` steps each, fine-tuned decoders, s_AABB = 1.2, tables 2^T; evaluated
+* ``scalar``: the paper's: K fresh blocks (``--pipeline.block-init fresh``) of ``B`` steps each,
+  fine-tuned decoders, s_AABB = 1.2, tables 2^T; evaluated
   with ``global`` fusion (SCALAR-NeRF), ``surface``, ``idw``, ``nearest`` and ``global-only`` (the same
   models, other fusions; ``global-only`` is the global model alone).
 * ``scalar-init-global``: as ``scalar``, but every block starts as a copy of the global model
-  (``--pipeline.block-init global``: its frame, table, occupancy grid, appearance) and fine-tunes it.
+  (``--pipeline.block-init global``, the default since it measured best: its frame, table, occupancy
+  grid, appearance) and fine-tunes it; evaluated with ``nearest`` (the default fusion) first.
+* The ablations below start their blocks fresh, as the paper's.
 * ``scalar-wo-sd``: independent decoders (the paper's "w/o SD"); evaluated with ``global`` fusion and
   with ``idw``, which is Block-NeRF's recipe (independent blocks + inverse distance weighting).
 * ``scalar-wo-ft``: frozen copies of the global decoder ("w/o FT").
@@ -122,6 +125,7 @@ def plan(config: BenchmarkConfig) -> Tuple[List[Variant], Dict[str, str]]:
     fixed_tables = {"pipeline.block_log2_hashmap_size": log2_19, "pipeline.block_max_resolution": 256 if config.quick else 2048}
     single = {**common, "pipeline.num_blocks": 1, "pipeline.train_blocks": False, "pipeline.global_steps": total}
     blocks = {**common, "pipeline.num_blocks": k, "pipeline.global_steps": 0, "pipeline.block_steps": b}
+    paper = {**blocks, **fixed_tables, "pipeline.block_init": "fresh"}  # the paper's blocks: empty tables of their own
     notes: Dict[str, str] = {}
     wanted = list(config.variants)
     unknown = [v for v in wanted if v not in VARIANTS]
@@ -136,18 +140,19 @@ def plan(config: BenchmarkConfig) -> Tuple[List[Variant], Dict[str, str]]:
         elif name == "ngp21":
             out.append(Variant(name, "scalar-nerf", {**single, "pipeline.model.field.log2_hashmap_size": log2_21}))
         elif name == "scalar":
-            out.append(Variant(name, "scalar-nerf", {**blocks, **fixed_tables}, ["global", "surface", "idw", "nearest", "global-only"], base="global"))
+            out.append(Variant(name, "scalar-nerf", paper,
+                               ["global", "surface", "idw", "nearest", "global-only"], base="global"))
         elif name == "scalar-init-global":
             out.append(Variant(name, "scalar-nerf", {**blocks, **fixed_tables, "pipeline.block_init": "global"},
-                               ["global", "surface", "global-only"], base="global"))
+                               ["nearest", "global", "surface", "idw", "global-only"], base="global"))
         elif name == "scalar-wo-sd":
-            out.append(Variant(name, "scalar-nerf", {**blocks, **fixed_tables, "pipeline.decoder_mode": "independent"}, ["global", "idw"], base="global"))
+            out.append(Variant(name, "scalar-nerf", {**paper, "pipeline.decoder_mode": "independent"}, ["global", "idw"], base="global"))
         elif name == "scalar-wo-ft":
-            out.append(Variant(name, "scalar-nerf", {**blocks, **fixed_tables, "pipeline.decoder_mode": "frozen"}, base="global"))
+            out.append(Variant(name, "scalar-nerf", {**paper, "pipeline.decoder_mode": "frozen"}, base="global"))
         elif name == "scalar-s1.0":
-            out.append(Variant(name, "scalar-nerf", {**blocks, **fixed_tables, "pipeline.aabb_scale": [1.0, 1.0, 1.0]}, base="global"))
+            out.append(Variant(name, "scalar-nerf", {**paper, "pipeline.aabb_scale": [1.0, 1.0, 1.0]}, base="global"))
         elif name == "scalar-autocap":
-            out.append(Variant(name, "scalar-nerf", blocks, base="global"))
+            out.append(Variant(name, "scalar-nerf", {**blocks, "pipeline.block_init": "fresh"}, base="global"))
         elif name == "auto":
             chosen = auto_k(config, log2_19)
             if chosen == 1:

@@ -61,10 +61,12 @@ class ScalarSceneModelConfig(ScalarModelConfig):
     """Global model + one local model per block, fused per pixel (paper Sec. 3.4)."""
 
     _target: Type = field(default_factory=lambda: ScalarSceneModel)
-    fusion: str = "global"
-    """How block renders are fused: global (closest to the global model's colour, the paper's), surface
-    (the block whose region holds the surface the global depth points to), idw (Block-NeRF's inverse
-    distance weighting), nearest, global-only, or block:<k>."""
+    fusion: str = "nearest"
+    """How block renders are fused: nearest (default: per ray the block whose cameras are nearest the
+    ray's origin; one block per ray, no global render: the best and cheapest on castle-P30 with blocks
+    started from the global model, docs/fusion.md), global (closest to the global model's colour, the
+    paper's), surface (the block whose region holds the surface the global depth points to), idw
+    (Block-NeRF's inverse distance weighting), global-only, or block:<k>."""
     idw_gamma: float = 1.0
     """Exponent of inverse distance weighting (``idw``, and ``surface`` between its blocks)."""
     seed_block_occupancy: bool = True
