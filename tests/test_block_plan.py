@@ -84,3 +84,19 @@ def test_older_and_damaged_blocks_json_are_refused_by_name(tmp_path: Path) -> No
     (tmp_path / "bad.json").write_text(json.dumps(content))
     with pytest.raises(BlockSplitError, match="malformed plan"):
         load_plan(tmp_path / "bad.json")
+
+
+def test_a_run_config_from_before_block_init_loads_as_fresh_blocks() -> None:
+    """Blocks now start from the global model by default; a config.yml written before the option
+    existed has no block_init key, and its blocks (trained fresh) must be rebuilt fresh."""
+    import yaml
+
+    from scalar_nerfstudio.pipeline import ScalarPipelineConfig
+
+    config = ScalarPipelineConfig()
+    assert config.effective_block_init() == "global"
+    old = yaml.load(yaml.dump(config).replace("block_init: global\n", ""), Loader=yaml.Loader)
+    assert "block_init" not in old.__dict__ and old.effective_block_init() == "fresh"
+    assert old.plan_settings().global_max_resolution is None  # per-block capacities, as it was trained
+    explicit = yaml.load(yaml.dump(ScalarPipelineConfig(block_init="fresh")), Loader=yaml.Loader)
+    assert explicit.effective_block_init() == "fresh"
