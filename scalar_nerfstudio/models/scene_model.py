@@ -44,6 +44,7 @@ from scalar_nerfstudio.models.block_memory import (
     release_tensors,
     save_block_file,
     spec_numel,
+    tensor_specs,
 )
 from scalar_nerfstudio.runs import block_model_path
 from scalar_nerfstudio.model_components.rendering import facing_normals, normals_from_unit_interval, normals_to_unit_interval, safe_normalise
@@ -168,7 +169,7 @@ class ScalarSceneModel(NormalsOutput, Model):
         blocks = {}
         for index in self.block_ids:
             model = self._new_block_model(index)
-            self._block_specs[index] = {key: (t.shape, t.dtype) for key, t in model.state_dict().items()}
+            self._block_specs[index] = tensor_specs(model)
             release_tensors(model)  # one block at a time in memory: built, measured, emptied
             if self.decoder_mode == "frozen":
                 model.field.decoder.requires_grad_(False)
