@@ -6,6 +6,7 @@ import json
 import subprocess
 import time
 from pathlib import Path
+from unittest import mock
 
 import pytest
 
@@ -120,6 +121,24 @@ def test_table_size_option_sets_every_table(tmp_path: Path) -> None:
     assert by_name["ngp21"].overrides["pipeline.model.field.log2_hashmap_size"] == 16
     assert by_name["scalar"].overrides["pipeline.block_log2_hashmap_size"] == 14
     assert "global-only" in by_name["scalar"].fusions and "surface" in by_name["scalar"].fusions
+
+
+def test_a_run_renders_with_the_first_fusion_it_reports(tmp_path: Path) -> None:
+    """The first fusion of a variant labels its curve, so the run must render with it, whatever the
+    model's default (the paper's variant reports ``global`` while the default is ``nearest``); the
+    ``auto`` variant is ns-train's defaults, so it reports the default fusion first."""
+    from scalar_nerfstudio.benchmarking.runner import trainer_config
+    from scalar_nerfstudio.models.scene_model import ScalarSceneModelConfig
+
+    spec = {"method": "scalar-nerf", "data": str(tmp_path), "downscale": 1, "output_dir": str(tmp_path / "out"), "overrides": {}}
+    assert trainer_config({**spec, "fusions": ["global", "nearest"]}).pipeline.model.fusion == "global"
+    assert trainer_config({**spec, "fusions": ["idw"]}).pipeline.model.fusion == "idw"
+    assert trainer_config(spec).pipeline.model.fusion == ScalarSceneModelConfig.fusion
+    config = BenchmarkConfig(data=tmp_path, variants=("scalar", "auto"))
+    with mock.patch("scalar_nerfstudio.benchmarking.variants.auto_k", return_value=3):
+        by_name = {v.name: v for v in plan(config)[0]}
+    assert by_name["scalar"].fusions[0] == "global"
+    assert by_name["auto"].fusions[0] == ScalarSceneModelConfig.fusion and by_name["auto"].overrides["pipeline.num_blocks"] is None
 
 
 def test_equal_wall_clock_reads_the_one_model_curve_at_the_parallel_time() -> None:

@@ -80,6 +80,9 @@ def trainer_config(spec: Dict[str, Any]):
     config.steps_per_eval_batch = config.steps_per_eval_image = config.steps_per_eval_all_images = 10**9
     config.steps_per_save = 10**9
     config.output_dir = Path(spec["output_dir"])
+    if spec["method"] != "nerfacto" and spec.get("fusions"):
+        # The run's own fusion (its curve and first result) is the first one listed, whatever the default.
+        config.pipeline.model.fusion = spec["fusions"][0]
     for key, value in spec.get("overrides", {}).items():
         _set(config, key, value)
     return config

@@ -19,7 +19,8 @@ Variants (same scene, same machine, same run; each trains in its own process):
 * ``scalar-wo-ft``: frozen copies of the global decoder ("w/o FT").
 * ``scalar-s1.0``: s_AABB = 1.0 (no overlap beyond KMeans' cells).
 * ``scalar-autocap``: K blocks with per-block table size and resolution chosen automatically.
-* ``auto``: everything automatic (K and capacity; K = 1 means one model of ``G + K B`` steps).
+* ``auto``: ``ns-train scalar-nerf``'s defaults: automatic K, blocks as the defaults start them, the
+  default fusion first (K = 1 means one model of ``G + K B`` steps).
 * ``nerfacto``: nerfstudio's nerfacto, torch implementation, for the wall-clock SCALAR-NeRF took.
   Its LPIPS needs downloaded AlexNet weights, so it is not computed for nerfacto.
 
@@ -154,6 +155,9 @@ def plan(config: BenchmarkConfig) -> Tuple[List[Variant], Dict[str, str]]:
         elif name == "scalar-autocap":
             out.append(Variant(name, "scalar-nerf", {**blocks, "pipeline.block_init": "fresh"}, base="global"))
         elif name == "auto":
+            from scalar_nerfstudio.models.scene_model import ScalarSceneModelConfig
+
+            default_fusion = ScalarSceneModelConfig.fusion
             chosen = auto_k(config, log2_19)
             if chosen == 1:
                 notes[name] = f"automatic K = 1 on this scene: one 2^{log2_19} model of {total} steps, the same configuration as ngp19"
@@ -161,7 +165,8 @@ def plan(config: BenchmarkConfig) -> Tuple[List[Variant], Dict[str, str]]:
                     out.append(Variant("ngp19", "scalar-nerf", single))
             else:
                 notes[name] = f"automatic K = {chosen}, {k * b // chosen} steps per block, automatic block tables"
-                out.append(Variant(name, "scalar-nerf", {**blocks, "pipeline.num_blocks": None, "pipeline.block_steps": k * b // chosen}, base="global"))
+                out.append(Variant(name, "scalar-nerf", {**blocks, "pipeline.num_blocks": None, "pipeline.block_steps": k * b // chosen},
+                                   [default_fusion, "global", "global-only"], base="global"))
         elif name == "nerfacto":
             overrides: Dict[str, Any] = {"pipeline.datamanager.train_num_rays_per_batch": config.rays_per_batch}
             if config.quick:

@@ -3,8 +3,10 @@ for one hash table.
 
 The town is a grid of streets (``blocks_x`` x ``blocks_y`` city blocks) lined with axis-aligned box
 buildings of varied footprints and heights, enclosed by a ring of buildings so that every street
-ends at a facade. Street-level cameras (1.5-2 m high) walk the streets (a Block-NeRF-style
-capture) and look along the streets and sideways at the facades.
+ends at a facade. Street-level cameras (1.5-2 m high) drive the streets on a rig, as in Block-NeRF's
+capture: the vehicle stops at even intervals and each of its cameras (by default two, 30 degrees
+left and right of the driving direction) takes a frame (``capture="rig"``). The older ``walk``
+capture (one frame per position, random heading) stays available.
 
 Everything is ray-cast with numpy: rays against the ground plane and against the buildings (a slab
 test vectorised over boxes; the boxes are grouped by city block, the blocks taken nearest first,
@@ -69,7 +71,12 @@ __all__ = [
 ]
 
 #: Generator version written to scene.json (bump when the same options give other pixels).
-GENERATOR_VERSION = 1
+#: Version 2 added the ``rig`` capture (the default); version 1 scenes (``walk``) still load.
+GENERATOR_VERSION = 2
+#: Generator versions whose scene.json :func:`load_town` reads.
+READABLE_VERSIONS = (1, 2)
+#: The ways the cameras capture the town (:attr:`TownConfig.capture`).
+CAPTURES = ("rig", "walk")
 #: Metres per unit of the 16-bit depth PNGs (nerfstudio's default ``depth_unit_scale_factor``).
 DEPTH_PNG_UNIT_M = 1e-3
 #: The largest depth a 16-bit PNG in millimetres holds; farther points are written as 0 (unknown).
@@ -132,7 +139,16 @@ class TownConfig:
     ring_depth: float = 14.0
     """Depth of the ring of buildings that encloses the town (every street ends at a facade)."""
     camera_height: Tuple[float, float] = (1.5, 2.0)
-    """Camera heights are uniform in this range."""
+    """Camera heights are uniform in this range (``walk``; a rig's cameras stay at its mid-height)."""
+    capture: str = "rig"
+    """``rig``: a vehicle drives the streets and stops at even intervals; at each stop every camera of
+    the rig (``rig_headings``) takes a frame, as Block-NeRF's capture does. A camera's frames at
+    neighbouring stops see the same facades from nearby at the same angle, so a held-out frame lies
+    between training frames of its own camera. ``walk``: one frame per position with a random
+    heading (along the street, sideways or diagonal), the only capture before generator version 2;
+    half of its held-out frames have no training frame looking their way within 2.5 stop spacings."""
+    rig_headings: Tuple[float, ...] = (30.0, -30.0)
+    """``rig`` only: the cameras' headings in degrees from the driving direction (positive: left)."""
     supersample: int = 1
     """Colour samples per pixel along each axis (ss x ss, averaged: anti-aliasing); depth is the
     pixel centre's."""
@@ -165,6 +181,11 @@ class TownConfig:
         low, high = self.camera_height
         if not (0.1 <= low <= high < 6.0):
             raise ValueError(f"TownConfig.camera_height must be a range (low, high) with 0.1 <= low <= high < 6 m, got {self.camera_height!r}")
+        if self.capture not in CAPTURES:
+            raise ValueError(f"TownConfig.capture must be one of {list(CAPTURES)}, got {self.capture!r}")
+        headings = self.rig_headings
+        if not (isinstance(headings, tuple) and headings and all(isinstance(h, (int, float, np.integer, np.floating)) and math.isfinite(h) and -180.0 <= h <= 180.0 for h in headings)):
+            raise ValueError(f"TownConfig.rig_headings must be a non-empty tuple of headings in degrees within [-180, 180], got {headings!r}")
         if isinstance(self.seed, bool) or not isinstance(self.seed, (int, np.integer)) or self.seed < 0:
             raise ValueError(f"TownConfig.seed must be a non-negative integer, got {self.seed!r}")
 
@@ -189,6 +210,7 @@ class TownConfig:
         """The options as JSON-ready values."""
         values = asdict(self)
         values["camera_height"] = list(self.camera_height)
+        values["rig_headings"] = [float(h) for h in self.rig_headings]
         return values
 
     @classmethod
@@ -201,6 +223,9 @@ class TownConfig:
         values = dict(values)
         if "camera_height" in values:
             values["camera_height"] = tuple(float(v) for v in values["camera_height"])
+        if "rig_headings" in values:
+            values["rig_headings"] = tuple(float(v) for v in values["rig_headings"])
+        values.setdefault("capture", "walk")  # scenes of generator version 1 (no capture key) walked
         return cls(**values)
 
 
@@ -865,12 +890,60 @@ def _walk_segments(town: Town) -> List[Tuple[np.ndarray, np.ndarray]]:
 
 
 def town_camera_poses(town: Town) -> np.ndarray:
-    """[N, 4, 4] camera-to-world poses (OpenGL axes) of the walk, in frame order.
+    """[N, 4, 4] camera-to-world poses (OpenGL axes), in frame order, of the town's capture
+    (:attr:`TownConfig.capture`)."""
+    return _rig_poses(town) if town.config.capture == "rig" else _walk_poses(town)
 
-    Positions are spread evenly (with jitter along and across the street) over the concatenated
-    street centre lines; each camera looks along the street (forward or back), sideways at a
-    facade, or diagonally, with a small random yaw and an upward-biased pitch.
-    """
+
+def _street_positions(town: Town, arc: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """[P] distances along the concatenated street centre lines -> ([P, 2] points on them,
+    [P] driving directions as yaw in radians)."""
+    segments = _walk_segments(town)
+    lengths = np.array([np.linalg.norm(b - a) for a, b in segments])
+    arc = np.clip(arc, 0.0, float(lengths.sum()) - 1e-9)
+    ends = np.cumsum(lengths)
+    which = np.minimum(np.searchsorted(ends, arc, side="right"), len(segments) - 1)
+    local = arc - (ends[which] - lengths[which])
+    points = np.empty((len(arc), 2))
+    yaws = np.empty(len(arc))
+    for k, segment in enumerate(which):
+        start, end = segments[segment]
+        direction = (end - start) / np.linalg.norm(end - start)
+        points[k] = start + direction * local[k]
+        yaws[k] = math.atan2(direction[1], direction[0])
+    return points, yaws
+
+
+def _rig_poses(town: Town) -> np.ndarray:
+    """The ``rig`` capture: ceil(N / R) stops evenly spread over the streets, R = len(rig_headings)
+    frames per stop (the last stop keeps the first cameras only). The vehicle weaves slowly across
+    the lanes; each camera's heading jitters by about 3 degrees and its pitch by a few degrees up."""
+    config = town.config
+    rng = np.random.default_rng([config.seed, 0x816])
+    segments = _walk_segments(town)
+    total = float(sum(np.linalg.norm(b - a) for a, b in segments))
+    headings = np.radians(np.asarray(config.rig_headings, dtype=float))
+    num_stops = -(-config.num_images // len(headings))
+    arc = (np.arange(num_stops) + 0.5) * (total / num_stops)
+    points, yaws = _street_positions(town, arc)
+    lateral_max = 0.45 * (config.street_width / 2.0 - 1.0)
+    lateral = lateral_max * np.sin(arc / 23.0)
+    height = 0.5 * (config.camera_height[0] + config.camera_height[1])
+    poses = np.empty((num_stops * len(headings), 4, 4))
+    for stop in range(num_stops):
+        left = np.array([-math.sin(yaws[stop]), math.cos(yaws[stop])])
+        xy = points[stop] + left * lateral[stop]
+        for c, heading in enumerate(headings):
+            yaw = yaws[stop] + heading + math.radians(rng.normal(0.0, 3.0))
+            pitch = math.radians(rng.uniform(0.0, 12.0) if abs(heading) >= math.radians(60.0) else rng.uniform(-2.0, 8.0))
+            poses[stop * len(headings) + c] = _camera_to_world(np.array([xy[0], xy[1], height]), yaw, pitch)
+    return poses[: config.num_images]
+
+
+def _walk_poses(town: Town) -> np.ndarray:
+    """The ``walk`` capture: positions spread evenly (with jitter along and across the street) over
+    the concatenated street centre lines; each camera looks along the street (forward or back),
+    sideways at a facade, or diagonally, with a small random yaw and an upward-biased pitch."""
     config = town.config
     rng = np.random.default_rng([config.seed, 0xCA3E])
     segments = _walk_segments(town)
@@ -1170,8 +1243,8 @@ def load_town(scene: Path) -> Town:
     content = json.loads(path.read_text())
     if content.get("generator") != "scalar_nerfstudio.data.town_scene":
         raise ValueError(f"{path} was not written by scalar_nerfstudio.data.town_scene.")
-    if content.get("version") != GENERATOR_VERSION:
-        raise ValueError(f"{path} was written by town generator version {content.get('version')}, this is version {GENERATOR_VERSION}.")
+    if content.get("version") not in READABLE_VERSIONS:
+        raise ValueError(f"{path} was written by town generator version {content.get('version')}; this one (version {GENERATOR_VERSION}) reads versions {list(READABLE_VERSIONS)}.")
     town = build_town(TownConfig.from_json(content["config"]))
     recorded = np.array([[*box["lo"], *box["hi"]] for box in content["boxes"]])
     if recorded.shape != (town.num_buildings, 6) or not np.array_equal(recorded, np.concatenate([town.lo, town.hi], axis=1)):

@@ -71,6 +71,11 @@ def build_parser() -> argparse.ArgumentParser:
     town.add_argument("--street-width", type=_positive_float, default=None, help="building line to building line in metres (default 14)")
     town.add_argument("--road-width", type=_positive_float, default=None, help="asphalt width in metres (default 8, or street width - 6 for narrower streets)")
     town.add_argument("--fov", type=_positive_float, default=None, help="horizontal field of view in degrees (default 45)")
+    town.add_argument("--capture", choices=("rig", "walk"), default=None,
+                      help="rig: a vehicle's cameras take a frame each at evenly spaced stops (Block-NeRF's capture, default); "
+                           "walk: one frame per position with a random heading (generator version 1's capture)")
+    town.add_argument("--rig-headings", type=float, nargs="+", default=None, metavar="DEG",
+                      help="rig cameras' headings in degrees from the driving direction, positive to the left (default 30 -30)")
     town.add_argument("--supersample", type=_positive_int, default=None, help="colour samples per pixel along each axis (default 1)")
     town.add_argument("--workers", type=_positive_int, default=1, help="processes rendering frames at once (same output; default 1)")
     parser.add_argument("--overwrite", action="store_true", help="write into a non-empty folder, replacing an earlier scene's frames")
@@ -105,6 +110,10 @@ def _town(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
                       ("street_width", "street_width"), ("road_width", "road_width"), ("fov", "fov_x_deg"), ("supersample", "supersample")):
         if getattr(args, key) is not None:
             options[name] = getattr(args, key)
+    if args.capture is not None:
+        options["capture"] = args.capture
+    if args.rig_headings is not None:
+        options["rig_headings"] = tuple(args.rig_headings)
     if args.street_width is not None and args.road_width is None:
         options["road_width"] = max(2.0, min(TownConfig.road_width, args.street_width - 6.0))
     if args.extent is not None:
@@ -157,7 +166,7 @@ def _automatic_blocks_line(config, poses) -> str:
 def _courtyard(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
     from scalar_nerfstudio.data.synthetic_scene import write_scene
 
-    town_only = [f"--{name.replace('_', '-')}" for name in ("blocks_x", "blocks_y", "extent", "block_size", "street_width", "road_width", "fov", "supersample")
+    town_only = [f"--{name.replace('_', '-')}" for name in ("blocks_x", "blocks_y", "extent", "block_size", "street_width", "road_width", "fov", "supersample", "capture", "rig_headings")
                  if getattr(args, name) is not None]
     if town_only:
         parser.error(f"{', '.join(town_only)}: only for --scene town")
