@@ -84,6 +84,22 @@ def test_degenerate_layouts() -> None:
         layout_scale(np.full((3, 3), np.nan), np.ones((3, 3)), np.ones(3))
 
 
+def test_a_street_rig_is_not_taken_for_converging_views() -> None:
+    """A town's rig looks every way along the streets, and two cameras stand at each stop: their
+    least-squares axis point lies in front of the cameras on average but in view of almost none, so
+    the viewing distance falls back to half the extent (it was 0.66 m, giving K = 8 for any table)."""
+    from scalar_nerfstudio.data.town_scene import TownConfig, build_town, town_camera_poses
+
+    config = TownConfig(num_images=300, width=128, height=96, blocks_x=2, blocks_y=2)
+    poses = town_camera_poses(build_town(config))
+    scale = layout_scale(poses[:, :3, 3], -poses[:, :3, 2], np.full(len(poses), config.focal_px))
+    assert not scale.converged and scale.viewing_distance == pytest.approx(scale.extent / 2.0)
+    # An inward ring looking at its centre still converges, at its radius.
+    ring = _orbit(24, 3.0, 0.3)
+    ring_scale = layout_scale(ring[:, :3, 3], -ring[:, :3, 2], np.full(24, 500.0))
+    assert ring_scale.converged and ring_scale.viewing_distance == pytest.approx(3.0, rel=0.1)
+
+
 def _parsed(scene: Path, downscale: int):
     from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 
