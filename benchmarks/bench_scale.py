@@ -131,7 +131,9 @@ def main() -> None:
 
     work = Path(tempfile.mkdtemp(prefix="bench-scale-"))
     scene = work / "town"
-    write_town(scene, TownConfig(num_images=args.images, width=args.size[0], height=args.size[1]), progress=False)
+    # The walk capture, as when docs/bench_scale.json was measured (generator version 1); memory and
+    # checkpoint sizes do not depend on where the cameras look.
+    write_town(scene, TownConfig(num_images=args.images, width=args.size[0], height=args.size[1], capture="walk"), progress=False)
     header = (f"{'K':>3} {'train RSS MiB':>13} {'train s':>7} {'ckpt MiB':>8} {'block file MiB':>14} {'files MiB':>9} "
               f"{'render ms':>9} {'again ms':>8} {'1 model ms':>10} {'ratio':>5} {'again':>5} {'blocks/view':>11} {'render RSS MiB':>14}")
     print(f"town: {args.images} views of {args.size[0]}x{args.size[1]}, block tables 2^{args.block_log2}, "

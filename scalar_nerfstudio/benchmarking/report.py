@@ -41,7 +41,9 @@ LABELS: Dict[Tuple[str, str], str] = {
     ("scalar-wo-ft", "global"): "SCALAR-NeRF w/o FT (frozen decoder)",
     ("scalar-s1.0", "global"): "SCALAR-NeRF, s_AABB = 1.0",
     ("scalar-autocap", "global"): "SCALAR-NeRF, automatic block tables",
-    ("auto", "global"): "automatic K and capacity",
+    ("auto", "nearest"): "ns-train scalar-nerf defaults (automatic K, nearest fusion)",
+    ("auto", "global"): "the defaults' blocks + global fusion (the paper's)",
+    ("auto", "global-only"): "its global model alone",
     ("nerfacto", "global"): "nerfacto (torch), same wall-clock",
 }
 

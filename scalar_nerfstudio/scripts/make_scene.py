@@ -1,13 +1,13 @@
 """``scalar-nerf-make-scene``: write one of the project's procedural scenes in nerfstudio format.
 
 Scenes:
-  town       a large town of streets and textured buildings, walked by street-level cameras
-             (transforms.json, images/, 16-bit depths/ in mm, scene.json); automatic K > 1,
-             so scalar-nerf splits it into blocks (docs/town.md: at CPU budgets blocks do not
-             pay off on it yet)
+  town       a large town of streets and textured buildings, driven by a rig of street-level
+             cameras (transforms.json, images/, 16-bit depths/ in mm, scene.json); automatic
+             K > 1, so scalar-nerf splits it into blocks (docs/town.md: at CPU budgets blocks
+             match one model with the same table but not one with a 4x larger table)
   courtyard  the small courtyard of scalar-nerf-demo (transforms.json, images/)
 
-Train on it with every 8th frame of the walk held out:
+Train on it with every 8th frame of the drive held out:
   ns-train scalar-nerf --data DIR nerfstudio-data --eval-mode interval --eval-interval 8
 """
 
