@@ -896,8 +896,8 @@ def town_camera_poses(town: Town) -> np.ndarray:
 
 
 def _street_positions(town: Town, arc: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
-    """[P] distances along the concatenated street centre lines -> ([P, 2] points on them,
-    [P] driving directions as yaw in radians)."""
+    """[P] distances along the concatenated street centre lines (clipped to their length) ->
+    ([P, 2] points on them, [P, 2] unit driving directions)."""
     segments = _walk_segments(town)
     lengths = np.array([np.linalg.norm(b - a) for a, b in segments])
     arc = np.clip(arc, 0.0, float(lengths.sum()) - 1e-9)
@@ -905,13 +905,12 @@ def _street_positions(town: Town, arc: np.ndarray) -> Tuple[np.ndarray, np.ndarr
     which = np.minimum(np.searchsorted(ends, arc, side="right"), len(segments) - 1)
     local = arc - (ends[which] - lengths[which])
     points = np.empty((len(arc), 2))
-    yaws = np.empty(len(arc))
+    directions = np.empty((len(arc), 2))
     for k, segment in enumerate(which):
         start, end = segments[segment]
-        direction = (end - start) / np.linalg.norm(end - start)
-        points[k] = start + direction * local[k]
-        yaws[k] = math.atan2(direction[1], direction[0])
-    return points, yaws
+        directions[k] = (end - start) / np.linalg.norm(end - start)
+        points[k] = start + directions[k] * local[k]
+    return points, directions
 
 
 def _rig_poses(town: Town) -> np.ndarray:
@@ -925,7 +924,8 @@ def _rig_poses(town: Town) -> np.ndarray:
     headings = np.radians(np.asarray(config.rig_headings, dtype=float))
     num_stops = -(-config.num_images // len(headings))
     arc = (np.arange(num_stops) + 0.5) * (total / num_stops)
-    points, yaws = _street_positions(town, arc)
+    points, directions = _street_positions(town, arc)
+    yaws = np.arctan2(directions[:, 1], directions[:, 0])
     lateral_max = 0.45 * (config.street_width / 2.0 - 1.0)
     lateral = lateral_max * np.sin(arc / 23.0)
     height = 0.5 * (config.camera_height[0] + config.camera_height[1])
@@ -946,17 +946,9 @@ def _walk_poses(town: Town) -> np.ndarray:
     sideways at a facade, or diagonally, with a small random yaw and an upward-biased pitch."""
     config = town.config
     rng = np.random.default_rng([config.seed, 0xCA3E])
-    segments = _walk_segments(town)
-    lengths = np.array([np.linalg.norm(b - a) for a, b in segments])
-    total = float(lengths.sum())
+    total = float(np.array([np.linalg.norm(b - a) for a, b in _walk_segments(town)]).sum())
     n = config.num_images
-    spacing = total / n
-    arc = (np.arange(n) + 0.5 + rng.uniform(-0.3, 0.3, size=n)) * spacing
-    arc = np.clip(arc, 0.0, total - 1e-9)
-    ends = np.cumsum(lengths)
-    which = np.searchsorted(ends, arc, side="right")
-    which = np.minimum(which, len(segments) - 1)
-    local = arc - (ends[which] - lengths[which])
+    points, directions = _street_positions(town, (np.arange(n) + 0.5 + rng.uniform(-0.3, 0.3, size=n)) * (total / n))
     lateral_max = 0.45 * (config.street_width / 2.0 - 1.0)
     headings = np.array([0.0, 180.0, 90.0, -90.0, 45.0, -45.0])
     weights = np.array([0.22, 0.1, 0.24, 0.24, 0.1, 0.1])
@@ -969,10 +961,9 @@ def _walk_poses(town: Town) -> np.ndarray:
     pitch_side = rng.uniform(2.0, 22.0, size=n)
     poses = np.empty((n, 4, 4))
     for k in range(n):
-        start, end = segments[which[k]]
-        direction = (end - start) / np.linalg.norm(end - start)
+        direction = directions[k]
         left = np.array([-direction[1], direction[0]])
-        xy = start + direction * local[k] + left * lateral[k]
+        xy = points[k] + left * lateral[k]
         walk_yaw = math.atan2(direction[1], direction[0])
         offset = headings[choice[k]]
         yaw = walk_yaw + math.radians(offset + yaw_jitter[k])
