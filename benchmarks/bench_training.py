@@ -23,7 +23,22 @@ from pathlib import Path
 from typing import Dict, List
 
 
-def train_one(method: str, data: str, downscale: int, seconds: float, steps: int, out: Path) -> None:
+def parse_settings(items: List[str]) -> Dict[str, object]:
+    """``["pipeline.model.occupancy_resolution=128", ...]`` -> {dotted name: value} (values read as JSON
+    where they parse, else kept as strings)."""
+    settings: Dict[str, object] = {}
+    for item in items:
+        name, sep, text = item.partition("=")
+        if not sep or not name:
+            raise SystemExit(f"bench_training: --scalar-set {item!r}: expected NAME=VALUE, e.g. pipeline.model.occupancy_resolution=128")
+        try:
+            settings[name] = json.loads(text)
+        except json.JSONDecodeError:
+            settings[name] = text
+    return settings
+
+
+def train_one(method: str, data: str, downscale: int, seconds: float, steps: int, out: Path, settings: Dict[str, object]) -> None:
     """Train ``method`` for ``seconds`` of wall clock (or ``steps``), evaluate, write ``out`` (JSON).
 
     Runs in a process of its own (``--worker``), so that each method starts from a fresh process.
@@ -38,6 +53,7 @@ def train_one(method: str, data: str, downscale: int, seconds: float, steps: int
     overrides = {"machine.device_type": "cpu", "mixed_precision": False, "pipeline.datamanager.train_num_rays_per_batch": 4096}
     if method == "scalar-nerf":
         overrides["max_num_iterations"] = steps
+        overrides.update(settings)
     config = trainer_config({"method": method, "data": data, "downscale": downscale, "output_dir": str(out.parent / "runs"), "overrides": overrides})
     config.set_timestamp()
     trainer = config.setup(local_rank=0, world_size=1)
@@ -70,6 +86,7 @@ def train_one(method: str, data: str, downscale: int, seconds: float, steps: int
         "threads": torch.get_num_threads(),
         "near_plane": collider.near_plane,
         "reset_near_plane": collider.reset_near_plane,
+        "settings": settings if method == "scalar-nerf" else {},
     }
     if method != "nerfacto" and "lpips" in metrics:
         result["lpips"] = metrics["lpips"]
@@ -98,7 +115,7 @@ def run_method(method: str, args: argparse.Namespace, workdir: Path) -> Dict:
     out = workdir / f"{method}.json"
     steps = args.scalar_steps if method == "scalar-nerf" else 100000
     command = [sys.executable, str(Path(__file__).resolve()), "--worker", method, str(args.data), str(args.downscale),
-               str(args.minutes * 60), str(steps), str(out)]
+               str(args.minutes * 60), str(steps), str(out), json.dumps(parse_settings(args.scalar_set))]
     print(f"[{time.strftime('%H:%M:%S')}] training {method} for {args.minutes} min ...", flush=True)
     subprocess.run(command, check=True, stdout=subprocess.DEVNULL if not args.verbose else None)
     return json.loads(out.read_text())
@@ -113,13 +130,16 @@ def main() -> None:
     parser.add_argument("--methods", nargs="+", default=["scalar-nerf", "nerfacto"])
     parser.add_argument("--workdir", type=Path, default=Path("outputs/bench_training"))
     parser.add_argument("--json", type=Path, default=None, help="also write the results here")
+    parser.add_argument("--scalar-set", nargs="*", default=[], metavar="NAME=VALUE",
+                        help="trainer-config settings for scalar-nerf, e.g. pipeline.model.occupancy_resolution=128")
     parser.add_argument("--verbose", action="store_true")
-    parser.add_argument("--worker", nargs=6, help=argparse.SUPPRESS)  # one method, in its own process (run_method)
+    parser.add_argument("--worker", nargs=7, help=argparse.SUPPRESS)  # one method, in its own process (run_method)
     args = parser.parse_args()
     if args.worker:
-        method, data, downscale, seconds, steps, out = args.worker
-        train_one(method, data, int(downscale), float(seconds), int(steps), Path(out))
+        method, data, downscale, seconds, steps, out, settings = args.worker
+        train_one(method, data, int(downscale), float(seconds), int(steps), Path(out), json.loads(settings))
         return
+    parse_settings(args.scalar_set)  # a malformed setting is refused before anything trains
     args.workdir.mkdir(parents=True, exist_ok=True)
     results: List[Dict] = [run_method(m, args, args.workdir) for m in args.methods]
     baseline = mean_image_baseline(args.data, args.downscale)

@@ -100,6 +100,10 @@ def check_pipeline_options(pipeline: Any, num_train_images: Optional[int] = None
         raise OptionError(f"--pipeline.block-log2-hashmap-size {_show(log2_size)}: must be a whole number from 1 to "
                           f"{MAX_LOG2_HASHMAP_SIZE}, or left out to size each block automatically.")
     _at_least(pipeline, "block_max_resolution", 1, optional=True)
+    if getattr(pipeline, "block_init", None) == "fitted" and getattr(pipeline, "decoder_mode", None) == "independent":
+        raise OptionError("--pipeline.block-init fitted with --pipeline.decoder-mode independent: a block's table is fitted to the "
+                          "global model through the global decoder, which an independent decoder does not copy; use "
+                          "--pipeline.decoder-mode finetune (or frozen), or --pipeline.block-init fresh.")
     _check_model(getattr(pipeline, "model", None))
     _check_data(getattr(pipeline, "datamanager", None))
     if num_train_images is not None:
@@ -146,6 +150,8 @@ def _check_model(model: Any) -> None:
     for name in ("num_samples_per_ray", "occupancy_resolution", "occupancy_update_every"):
         _at_least(model, name, 1, prefix=prefix)
     _at_least(model, "blocks_per_ray", 0, " (0: every block on every ray)", prefix=prefix, optional=True)
+    _at_least(model, "block_fit_steps", 0, " (0: a fitted block keeps its fresh table)", prefix=prefix, optional=True)
+    _at_least(model, "block_fit_points", 1, prefix=prefix, optional=True)
     near, far = getattr(model, "near_plane", 0.0), getattr(model, "far_plane", 1.0)
     if not (isinstance(near, (int, float)) and isinstance(far, (int, float)) and 0 <= near < far):
         raise OptionError(f"--pipeline.model.near-plane {_show(near)} / --pipeline.model.far-plane {_show(far)}: need 0 <= near < far.")

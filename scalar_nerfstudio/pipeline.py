@@ -98,8 +98,11 @@ class ScalarPipelineConfig(VanillaPipelineConfig):
     table, decoder, occupancy grid and its images' appearance embeddings), fine-tuned on the block's
     images, so a block starts as good as the global model (castle-P30: every fusion then beats the
     global model alone, docs/fusion.md); ``fresh``: the paper's, an empty table of its own size over
-    the block's region (only the decoder is copied, see decoder-mode). A run's config.yml from before
-    this option loads as fresh, as it was trained."""
+    the block's region (only the decoder is copied, see decoder-mode); ``fitted``: a table of its own
+    over the block's region like fresh, first fitted to the global model's encoding of the space the
+    block's cameras observe (--pipeline.model.block-fit-steps, about as long as 25 training steps),
+    with its images' appearance embeddings copied. A run's config.yml from before this option loads
+    as fresh, as it was trained."""
     train_blocks: bool = True
     """False: train the global phase only (blocks can then be trained with scalar-nerf-block)."""
     only_block: Optional[int] = None
@@ -283,7 +286,10 @@ class ScalarPipeline(VanillaPipeline):
         """The phase at ``step``; a block's phase starts (its decoder is copied) on its first step."""
         phase = self.phase_at(step)
         if phase.block is not None:
-            self.model.begin_block(phase.block)
+            fit = self.model.begin_block(phase.block)
+            if fit is not None:
+                CONSOLE.log(f"phase {phase.name}: table fitted to the global model's encoding in {fit.steps} steps "
+                            f"(mean squared error {fit.initial_error:.3g} -> {fit.final_error:.3g})")
         return phase
 
     def _train_datamanager(self, phase: Phase) -> DataManager:
@@ -358,7 +364,8 @@ class ScalarPipeline(VanillaPipeline):
                 + ("; one model suffices, no block is trained" if self.plan.single_model else "")
             )
         for index, capacity in self.block_capacities.items():
-            start = " (starts as a copy of the global model)" if self.config.effective_block_init() == "global" else ""
+            start = {"global": " (starts as a copy of the global model)", "fitted": " (its table fitted to the global model first)"}.get(
+                self.config.effective_block_init(), "")
             lines.append(f"block {index}: table 2^{capacity.log2_hashmap_size}, finest resolution {capacity.max_resolution}{start}")
         lines.append("phases: " + ", ".join(f"{p.name}: steps {p.start_step}-{p.end_step - 1}" for p in self.phases if p.num_steps > 0))
         return "\n".join(lines)

@@ -450,6 +450,8 @@ OPTION_CASES = [
     ("pipeline.datamanager.dataparser.downscale_factor", 0, None, "--downscale-factor 0 (nerfstudio-data)"),
     ("pipeline.model.field.log2_hashmap_size", 0, None, "--pipeline.model.field.log2-hashmap-size 0"),
     ("pipeline.model.near_plane", 2000.0, None, "--pipeline.model.near-plane 2000"),
+    ("pipeline.model.block_fit_steps", -1, None, "--pipeline.model.block-fit-steps -1: must be a whole number >= 0"),
+    ("pipeline.model.block_fit_points", 0, None, "--pipeline.model.block-fit-points 0"),
     ("max_num_iterations", -1, None, "--max-num-iterations -1"),
     ("steps_per_save", 0, None, "--steps-per-save 0"),
 ]
@@ -475,6 +477,15 @@ def test_nothing_to_train() -> None:
     config.pipeline.global_steps, config.pipeline.train_blocks = 0, False
     with pytest.raises(OptionError, match="leaves nothing to train"):
         check_pipeline_options(config.pipeline)
+
+
+def test_fitted_blocks_with_independent_decoders_are_refused() -> None:
+    config = _config()
+    config.pipeline.block_init, config.pipeline.decoder_mode = "fitted", "independent"
+    with pytest.raises(OptionError, match="--pipeline.block-init fitted with --pipeline.decoder-mode independent"):
+        check_pipeline_options(config.pipeline)
+    config.pipeline.decoder_mode = "frozen"
+    check_pipeline_options(config.pipeline)
 
 
 def test_counts_are_not_checked_for_a_given_split() -> None:

@@ -134,11 +134,18 @@ def test_a_run_renders_with_the_first_fusion_it_reports(tmp_path: Path) -> None:
     assert trainer_config({**spec, "fusions": ["global", "nearest"]}).pipeline.model.fusion == "global"
     assert trainer_config({**spec, "fusions": ["idw"]}).pipeline.model.fusion == "idw"
     assert trainer_config(spec).pipeline.model.fusion == ScalarSceneModelConfig.fusion
-    config = BenchmarkConfig(data=tmp_path, variants=("scalar", "auto"))
+    config = BenchmarkConfig(data=tmp_path, variants=("scalar", "auto", "scalar-fitted", "auto-fitted"))
     with mock.patch("scalar_nerfstudio.benchmarking.variants.auto_k", return_value=3):
         by_name = {v.name: v for v in plan(config)[0]}
     assert by_name["scalar"].fusions[0] == "global"
     assert by_name["auto"].fusions[0] == ScalarSceneModelConfig.fusion and by_name["auto"].overrides["pipeline.num_blocks"] is None
+    assert "pipeline.block_init" not in by_name["auto"].overrides  # the defaults' own
+    fitted = by_name["auto-fitted"]
+    assert fitted.overrides == {**by_name["auto"].overrides, "pipeline.block_init": "fitted"} and fitted.base == "global"
+    assert by_name["scalar-fitted"].overrides["pipeline.block_init"] == "fitted" and by_name["scalar-fitted"].fusions[0] == "nearest"
+    config = BenchmarkConfig(data=tmp_path, variants=("auto", "auto-fitted"))
+    with mock.patch("scalar_nerfstudio.benchmarking.variants.auto_k", return_value=1):  # both are one model then: ngp19, once
+        assert [v.name for v in plan(config)[0]] == ["global", "ngp19"]
 
 
 def test_equal_wall_clock_reads_the_one_model_curve_at_the_parallel_time() -> None:

@@ -36,6 +36,10 @@ LABELS: Dict[Tuple[str, str], str] = {
     ("scalar-init-global", "idw"): "blocks start as the global model + IDW",
     ("scalar-init-global", "nearest"): "blocks start as the global model + nearest",
     ("scalar-init-global", "global-only"): "its global model alone",
+    ("scalar-fitted", "nearest"): "blocks with fitted tables + nearest",
+    ("scalar-fitted", "global"): "blocks with fitted tables + global fusion",
+    ("scalar-fitted", "surface"): "blocks with fitted tables + surface fusion",
+    ("scalar-fitted", "global-only"): "its global model alone",
     ("scalar-wo-sd", "global"): "SCALAR-NeRF w/o SD (independent decoders)",
     ("scalar-wo-sd", "idw"): "Block-NeRF-style (independent blocks + IDW)",
     ("scalar-wo-ft", "global"): "SCALAR-NeRF w/o FT (frozen decoder)",
@@ -44,6 +48,8 @@ LABELS: Dict[Tuple[str, str], str] = {
     ("auto", "nearest"): "ns-train scalar-nerf defaults (automatic K, nearest fusion)",
     ("auto", "global"): "the defaults' blocks + global fusion (the paper's)",
     ("auto", "global-only"): "its global model alone",
+    ("auto-fitted", "nearest"): "the defaults with fitted block tables (--pipeline.block-init fitted)",
+    ("auto-fitted", "global-only"): "its global model alone",
     ("nerfacto", "global"): "nerfacto (torch), same wall-clock",
 }
 

@@ -13,6 +13,9 @@ Variants (same scene, same machine, same run; each trains in its own process):
 * ``scalar-init-global``: as ``scalar``, but every block starts as a copy of the global model
   (``--pipeline.block-init global``, the default since it measured best: its frame, table, occupancy
   grid, appearance) and fine-tunes it; evaluated with ``nearest`` (the default fusion) first.
+* ``scalar-fitted``: as ``scalar`` (own frame, table 2^T), but each block's table is first fitted to the
+  global model's encoding on the block's observed space (``--pipeline.block-init fitted``); evaluated
+  with ``nearest`` first.
 * The ablations below start their blocks fresh, as the paper's.
 * ``scalar-wo-sd``: independent decoders (the paper's "w/o SD"); evaluated with ``global`` fusion and
   with ``idw``, which is Block-NeRF's recipe (independent blocks + inverse distance weighting).
@@ -21,6 +24,7 @@ Variants (same scene, same machine, same run; each trains in its own process):
 * ``scalar-autocap``: K blocks with per-block table size and resolution chosen automatically.
 * ``auto``: ``ns-train scalar-nerf``'s defaults: automatic K, blocks as the defaults start them, the
   default fusion first (K = 1 means one model of ``G + K B`` steps).
+* ``auto-fitted``: ``auto`` with ``--pipeline.block-init fitted`` (when automatic K > 1).
 * ``nerfacto``: nerfstudio's nerfacto, torch implementation, for the wall-clock SCALAR-NeRF took.
   Its LPIPS needs downloaded AlexNet weights, so it is not computed for nerfacto.
 
@@ -39,7 +43,7 @@ from typing import Any, Dict, List, Optional, Tuple
 __all__ = ["VARIANTS", "BenchmarkConfig", "Variant", "auto_k", "plan", "use_quick_budgets"]
 
 VARIANTS: Tuple[str, ...] = (
-    "ngp19", "ngp21", "scalar", "scalar-init-global", "scalar-wo-sd", "scalar-wo-ft", "scalar-s1.0", "scalar-autocap", "auto", "nerfacto",
+    "ngp19", "ngp21", "scalar", "scalar-init-global", "scalar-fitted", "scalar-wo-sd", "scalar-wo-ft", "scalar-s1.0", "scalar-autocap", "auto", "auto-fitted", "nerfacto",
 )
 
 
@@ -133,7 +137,7 @@ def plan(config: BenchmarkConfig) -> Tuple[List[Variant], Dict[str, str]]:
     if unknown:
         raise SystemExit(f"scalar-nerf-benchmark: unknown variant(s) {unknown}; choose from {list(VARIANTS)}")
     out: List[Variant] = []
-    if any(v.startswith("scalar") or v == "nerfacto" for v in wanted) or "auto" in wanted:
+    if any(v.startswith(("scalar", "auto")) or v == "nerfacto" for v in wanted):
         out.append(Variant("global", "scalar-nerf", {**common, "pipeline.num_blocks": k, "pipeline.train_blocks": False, "pipeline.global_steps": g}))
     for name in wanted:
         if name == "ngp19":
@@ -146,6 +150,9 @@ def plan(config: BenchmarkConfig) -> Tuple[List[Variant], Dict[str, str]]:
         elif name == "scalar-init-global":
             out.append(Variant(name, "scalar-nerf", {**blocks, **fixed_tables, "pipeline.block_init": "global"},
                                ["nearest", "global", "surface", "idw", "global-only"], base="global"))
+        elif name == "scalar-fitted":
+            out.append(Variant(name, "scalar-nerf", {**blocks, **fixed_tables, "pipeline.block_init": "fitted"},
+                               ["nearest", "global", "surface", "global-only"], base="global"))
         elif name == "scalar-wo-sd":
             out.append(Variant(name, "scalar-nerf", {**paper, "pipeline.decoder_mode": "independent"}, ["global", "idw"], base="global"))
         elif name == "scalar-wo-ft":
@@ -154,19 +161,22 @@ def plan(config: BenchmarkConfig) -> Tuple[List[Variant], Dict[str, str]]:
             out.append(Variant(name, "scalar-nerf", {**paper, "pipeline.aabb_scale": [1.0, 1.0, 1.0]}, base="global"))
         elif name == "scalar-autocap":
             out.append(Variant(name, "scalar-nerf", {**blocks, "pipeline.block_init": "fresh"}, base="global"))
-        elif name == "auto":
+        elif name in ("auto", "auto-fitted"):
             from scalar_nerfstudio.models.scene_model import ScalarSceneModelConfig
 
             default_fusion = ScalarSceneModelConfig.fusion
             chosen = auto_k(config, log2_19)
             if chosen == 1:
                 notes[name] = f"automatic K = 1 on this scene: one 2^{log2_19} model of {total} steps, the same configuration as ngp19"
-                if "ngp19" not in wanted:
+                if "ngp19" not in wanted and not any(v.name == "ngp19" for v in out):
                     out.append(Variant("ngp19", "scalar-nerf", single))
             else:
                 notes[name] = f"automatic K = {chosen}, {k * b // chosen} steps per block, automatic block tables"
-                out.append(Variant(name, "scalar-nerf", {**blocks, "pipeline.num_blocks": None, "pipeline.block_steps": k * b // chosen},
-                                   [default_fusion, "global", "global-only"], base="global"))
+                automatic = {**blocks, "pipeline.num_blocks": None, "pipeline.block_steps": k * b // chosen}
+                if name == "auto":
+                    out.append(Variant(name, "scalar-nerf", automatic, [default_fusion, "global", "global-only"], base="global"))
+                else:
+                    out.append(Variant(name, "scalar-nerf", {**automatic, "pipeline.block_init": "fitted"}, [default_fusion, "global-only"], base="global"))
         elif name == "nerfacto":
             overrides: Dict[str, Any] = {"pipeline.datamanager.train_num_rays_per_batch": config.rays_per_batch}
             if config.quick:

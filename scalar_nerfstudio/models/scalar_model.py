@@ -271,8 +271,16 @@ class ScalarModel(NormalsOutput, Model):
     def seed_occupancy_from(self, other: "ScalarModel") -> None:
         """Mark this model's occupancy grid from ``other``'s density (a block from the global model):
         each cell centre is taken to the world, then into ``other``'s frame; no warm-up follows."""
-        world = self._from_region(unit_cube_to_world(self.occupancy.cell_centres()))
-        self.occupancy.seed(other._density_no_grad(contract_to_unit_cube(other._to_region(world))))
+        world = self.unit_cube_to_world(self.occupancy.cell_centres())
+        self.occupancy.seed(other._density_no_grad(other.world_to_unit_cube(world)))
+
+    def world_to_unit_cube(self, positions: Tensor) -> Tensor:
+        """[N, 3] world positions -> [N, 3] contracted unit-cube positions of this model's frame (what its field reads)."""
+        return contract_to_unit_cube(self._to_region(positions))
+
+    def unit_cube_to_world(self, unit_positions: Tensor) -> Tensor:
+        """Inverse of :meth:`world_to_unit_cube`: [N, 3] in [0, 1]^3 -> [N, 3] world positions (finite)."""
+        return self._from_region(unit_cube_to_world(unit_positions))
 
     def _from_region(self, positions: Tensor) -> Tensor:
         """[N, 3] positions in the model's region frame -> [N, 3] world positions."""

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Dict, List, Literal, Optional, Tuple, Type
+from typing import Any, Dict, List, Literal, Optional, Tuple, Type, get_args
 
 import torch
 from nerfstudio.cameras.cameras import Cameras
@@ -35,6 +35,7 @@ from scalar_nerfstudio.fusion import (
     weights_winner,
 )
 from scalar_nerfstudio.metrics import psnr
+from scalar_nerfstudio.models.block_fit import EncodingFit, fit_encoding, occupied_cell_sampler
 from scalar_nerfstudio.models.block_memory import (
     ResidentBlocks,
     TensorSpec,
@@ -52,7 +53,8 @@ from scalar_nerfstudio.models.scalar_model import NormalsOutput, ScalarModel, Sc
 from scalar_nerfstudio.blocks.palette import BLOCK_PALETTE, GLOBAL_COLOUR
 
 DecoderMode = Literal["finetune", "frozen", "independent"]
-BlockInit = Literal["global", "fresh"]
+BlockInit = Literal["global", "fresh", "fitted"]
+BLOCK_INITS: Tuple[str, ...] = get_args(BlockInit)
 #: A block's region radius never drops below this (normalised scene units; cameras span [-1, 1]).
 MIN_REGION_RADIUS = 0.05
 
@@ -86,6 +88,11 @@ class ScalarSceneModelConfig(ScalarModelConfig):
     """Choosing blocks per ray, consider only the blocks whose training cameras observe the point at the
     global depth (blocks/observation.py); a ray no block observes is the global model's. Off: every
     block's region competes (on inward-looking captures that picks blocks whose cameras look away)."""
+    block_fit_steps: int = 100
+    """``block_init`` fitted: Adam steps fitting a block's table to the global model's encoding before the
+    block trains (models/block_fit.py; hash grids only, no rendering)."""
+    block_fit_points: int = 1 << 15
+    """``block_init`` fitted: world points per fitting step."""
     max_resident_blocks: int = 8
     """Finished blocks are kept on disk (RUN/block_models/) and loaded when a render needs them; at
     most this many loaded blocks stay in memory at once (least recently used ones are released).
@@ -133,7 +140,8 @@ class ScalarSceneModel(NormalsOutput, Model):
             (default: the config's field settings).
         decoder_mode: ``finetune`` / ``frozen`` (start from the global decoder) or ``independent``.
         block_init: ``global``: a block model lives in the global model's frame and starts as a copy of
-            it (:meth:`begin_block`); ``fresh``: its own frame over its scaled AABB, an empty table.
+            it (:meth:`begin_block`); ``fresh``: its own frame over its scaled AABB, an empty table;
+            ``fitted``: as fresh, with the table fitted to the global model first (:meth:`_fit_block`).
         block_observation: [K, G^3] bool, the cells each block's cameras observe
             (``blocks/observation.py``); None: blocks are chosen by their regions alone.
     """
@@ -153,8 +161,11 @@ class ScalarSceneModel(NormalsOutput, Model):
         if self.decoder_mode not in ("finetune", "frozen", "independent"):
             raise ValueError(f"decoder_mode {self.decoder_mode!r}: expected finetune, frozen or independent")
         self.block_init: BlockInit = self.kwargs.get("block_init", "fresh")
-        if self.block_init not in ("global", "fresh"):
-            raise ValueError(f"block_init {self.block_init!r}: expected global or fresh")
+        if self.block_init not in BLOCK_INITS:
+            raise ValueError(f"block_init {self.block_init!r}: expected one of {', '.join(BLOCK_INITS)}")
+        if self.block_init == "fitted" and self.decoder_mode == "independent":
+            raise ValueError("block_init fitted fits a block's table to the global model through the global decoder, "
+                             "which decoder_mode independent does not copy: use decoder_mode finetune or frozen, or block_init fresh")
         num_images: Dict[int, int] = {b.index: len(b.image_indices) for b in self.split.blocks}  # sizes appearance embeddings
         self.fusion_mode: ParsedFusionMode = parse_fusion_mode(self.config.fusion, self.split.num_blocks)
         self.rendered_models: set = set()
@@ -195,7 +206,7 @@ class ScalarSceneModel(NormalsOutput, Model):
 
     def _new_block_model(self, index: int) -> ScalarModel:
         """Block ``index``'s model, freshly initialised (its own frame, or the global one)."""
-        centre, radius = block_region(self.split.blocks[index]) if self.block_init == "fresh" else ((0.0, 0.0, 0.0), 1.0)
+        centre, radius = ((0.0, 0.0, 0.0), 1.0) if self.block_init == "global" else block_region(self.split.blocks[index])
         return ScalarModel(
             config=self._block_config(self._block_capacities.get(index)), scene_box=self.scene_box,
             num_train_data=self._num_block_images[index], region_centre=centre, region_radius=radius,
@@ -337,14 +348,16 @@ class ScalarSceneModel(NormalsOutput, Model):
         return self.resident_block(block) if bool(self.blocks_started[block]) else self.blocks[str(block)]
 
     @torch.no_grad()
-    def begin_block(self, block: int) -> None:
+    def begin_block(self, block: int) -> Optional[EncodingFit]:
         """Start block ``block``'s phase once: give it freshly initialised weights in memory and copy
         the global decoder into it (finetune / frozen); with ``block_init`` global, also the global
         table, occupancy grid and the block's images' appearance embeddings (the block starts as the
         global model); else, with :attr:`seed_block_occupancy`, mark its occupancy grid from the
-        global model's density."""
+        global model's density, and with ``fitted`` fit its table to the global model's encoding
+        (:meth:`_fit_block`; the fit is returned, None otherwise)."""
         if bool(self.blocks_started[block]):
-            return
+            return None
+        fit = None
         fresh = self._new_block_model(block).to(self.blocks_started.device)
         self._install_block(block, fresh.state_dict(), f"block {block} (fresh)", evictable=False)
         del fresh
@@ -353,13 +366,46 @@ class ScalarSceneModel(NormalsOutput, Model):
             model.field.decoder.load_state_dict(self.global_model.field.decoder.state_dict())
         if self.block_init == "global":
             model.field.encoder.load_state_dict(self.global_model.field.encoder.state_dict())
-            rows = torch.tensor(self.split.blocks[block].image_indices, dtype=torch.long)
-            model.field.appearance.weight.copy_(self.global_model.field.appearance.weight[rows.to(model.field.appearance.weight.device)])
+            self._copy_appearance(block, model)
             model.occupancy.load_state_dict(self.global_model.occupancy.state_dict())
             model.occupancy.seeded.fill_(True)
-        elif self.config.seed_block_occupancy:
-            model.seed_occupancy_from(self.global_model)
+        else:
+            if self.config.seed_block_occupancy:
+                model.seed_occupancy_from(self.global_model)
+            if self.block_init == "fitted":
+                fit = self._fit_block(block, model)
         self.blocks_started[block] = True
+        return fit
+
+    def _fit_block(self, block: int, model: ScalarModel) -> EncodingFit:
+        """``block_init`` fitted: block ``block``'s table fitted to the global model's encoding over the
+        global model's occupied cells that the block's cameras observe (all its occupied cells near the
+        block when that is not known; every cell when none is occupied), and its images' appearance
+        embeddings copied."""
+        global_model = self.global_model
+        grid = global_model.occupancy
+        cells = torch.nonzero(grid.occupied).squeeze(-1)
+        if cells.numel() == 0:
+            cells = torch.arange(grid.occupied.numel(), device=grid.occupied.device)
+        centres = global_model.unit_cube_to_world(grid.cell_centres()[cells])  # [C, 3] world
+        if self.block_observation is not None:
+            near_block = observed_at(self.block_observation[block : block + 1], centres)[0].to(cells.device)
+        else:
+            near_block = torch.linalg.vector_norm(centres - self.block_centres[block], dim=-1) <= 2.0 * float(self.block_radii[block])
+        if bool(near_block.any()):
+            cells = cells[near_block]
+        generator = torch.Generator(device=cells.device).manual_seed(block)
+        sampler = occupied_cell_sampler(cells, grid.resolution, global_model.unit_cube_to_world, generator)
+        self._copy_appearance(block, model)
+        return fit_encoding(
+            model.field.encoder, model.world_to_unit_cube, global_model.field.encoder, global_model.world_to_unit_cube,
+            sampler, steps=self.config.block_fit_steps, points_per_step=self.config.block_fit_points,
+        )
+
+    def _copy_appearance(self, block: int, model: ScalarModel) -> None:
+        """Give block ``block``'s model the global model's appearance embeddings of the block's images."""
+        rows = torch.tensor(self.split.blocks[block].image_indices, dtype=torch.long, device=model.field.appearance.weight.device)
+        model.field.appearance.weight.copy_(self.global_model.field.appearance.weight[rows])
 
     def started_block_ids(self) -> List[int]:
         """Blocks held here whose training has started (the ones rendering fuses)."""
