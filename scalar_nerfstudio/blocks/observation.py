@@ -18,6 +18,7 @@ import torch
 from torch import Tensor
 
 from scalar_nerfstudio.fields.scalar_field import contract_to_unit_cube, unit_cube_to_world
+from scalar_nerfstudio.model_components.sampling import cell_coordinates, flat_cell_indices
 
 #: Cells per axis of the observation grid over the contracted unit cube (the inner ball |x| <= 1,
 #: where the cameras are, spans half of it: 16 cells, 1/8 of the camera layout each).
@@ -27,16 +28,12 @@ _CHUNK = 1 << 15
 
 def grid_cell_centres(resolution: int) -> Tensor:
     """[G^3, 3] world positions of the cell centres of a G^3 grid over the contracted unit cube."""
-    cells = torch.arange(resolution**3)
-    unit = (torch.stack([cells // (resolution * resolution), (cells // resolution) % resolution, cells % resolution], dim=-1).float() + 0.5) / resolution
-    return unit_cube_to_world(unit)
+    return unit_cube_to_world((cell_coordinates(torch.arange(resolution**3), resolution) + 0.5) / resolution)
 
 
 def grid_cell_indices(points: Tensor, resolution: int) -> Tensor:
     """[N, 3] world points -> [N] flat indices of their cells (non-finite points: the cube's edge cells)."""
-    unit = contract_to_unit_cube(points.float())
-    cells = (unit * resolution).long().clamp(0, resolution - 1)
-    return cells[:, 0] * (resolution * resolution) + cells[:, 1] * resolution + cells[:, 2]
+    return flat_cell_indices(contract_to_unit_cube(points.float()), resolution)
 
 
 def seen_by_any(points: Tensor, camera_to_worlds: Tensor, fx: Tensor, fy: Tensor, cx: Tensor, cy: Tensor,

@@ -48,6 +48,21 @@ def sample_intervals(nears: Tensor, fars: Tensor, num_samples: int, jitter: bool
     return t_edges[:, :-1], t_edges[:, 1:]
 
 
+def cell_coordinates(cells: Tensor, resolution: int) -> Tensor:
+    """[M] flat cell indices of a ``G^3`` grid (``x * G^2 + y * G + z``) -> [M, 3] float32 integer
+    coordinates (x, y, z) of the cells' low corners, in cells."""
+    g = resolution
+    return torch.stack([cells // (g * g), (cells // g) % g, cells % g], dim=-1).float()
+
+
+def flat_cell_indices(unit_positions: Tensor, resolution: int) -> Tensor:
+    """[M, 3] positions in the unit cube -> [M] flat indices of their cells in a ``G^3`` grid
+    (always in range: NaN counts as 0, positions outside are clamped to the edge cells)."""
+    g = resolution
+    cells = (torch.nan_to_num(unit_positions, nan=0.0) * g).long().clamp(0, g - 1)
+    return cells[:, 0] * (g * g) + cells[:, 1] * g + cells[:, 2]
+
+
 class OccupancyGrid(nn.Module):
     """Occupancy over the contracted unit cube, updated from the field's density as it trains.
 
@@ -100,8 +115,7 @@ class OccupancyGrid(nn.Module):
     def cell_centres(self) -> Tensor:
         """[G^3, 3] centres of the cells in the contracted unit cube, in flat cell order."""
         g = self.resolution
-        cells = torch.arange(g**3, device=self.density_ema.device)
-        return (torch.stack([cells // (g * g), (cells // g) % g, cells % g], dim=-1).float() + 0.5) / g
+        return (cell_coordinates(torch.arange(g**3, device=self.density_ema.device), g) + 0.5) / g
 
     @torch.no_grad()
     def seed(self, densities: Tensor) -> None:
@@ -117,9 +131,7 @@ class OccupancyGrid(nn.Module):
 
     def cell_indices(self, unit_positions: Tensor) -> Tensor:
         """[M, 3] positions in the contracted unit cube -> [M] flat cell indices (always in range)."""
-        g = self.resolution
-        cells = (torch.nan_to_num(unit_positions, nan=0.0) * g).long().clamp(0, g - 1)
-        return cells[:, 0] * (g * g) + cells[:, 1] * g + cells[:, 2]
+        return flat_cell_indices(unit_positions, self.resolution)
 
     def density_estimates(self, unit_positions: Tensor) -> Tensor:
         """[M, 3] contracted unit-cube positions -> [M] float32 density estimates of their cells
@@ -159,7 +171,7 @@ class OccupancyGrid(nn.Module):
             cells = torch.arange(num_cells, device=device)
         else:
             cells = torch.randint(0, num_cells, (num_cells // 4,), device=device)
-        coords = torch.stack([cells // (g * g), (cells // g) % g, cells % g], dim=-1).float()
+        coords = cell_coordinates(cells, g)
         positions = (coords + torch.rand_like(coords)) / g
         densities = torch.nan_to_num(density_fn(positions).reshape(-1).float(), nan=0.0, posinf=1e6)
         previous = self.density_ema[cells]

@@ -25,6 +25,7 @@ import torch
 from torch import Tensor
 
 from scalar_nerfstudio.encodings import HashGridEncoding
+from scalar_nerfstudio.model_components.sampling import cell_coordinates
 
 __all__ = ["EncodingFit", "fit_encoding", "occupied_cell_sampler"]
 
@@ -57,7 +58,7 @@ def occupied_cell_sampler(cells: Tensor, resolution: int, to_world: Callable[[Te
 
     def sample(count: int) -> Tensor:
         picks = cells[torch.randint(0, cells.numel(), (count,), generator=generator, device=cells.device)]
-        coords = torch.stack([picks // (g * g), (picks // g) % g, picks % g], dim=-1).float()
+        coords = cell_coordinates(picks, g)
         jitter = torch.rand(coords.shape, generator=generator, device=cells.device)
         return to_world((coords + jitter) / g)
 
