@@ -100,7 +100,7 @@ class ScalarPipelineConfig(VanillaPipelineConfig):
     global model alone, docs/fusion.md); ``fresh``: the paper's, an empty table of its own size over
     the block's region (only the decoder is copied, see decoder-mode); ``fitted``: a table of its own
     over the block's region like fresh, first fitted to the global model's encoding of the space the
-    block's cameras observe (--pipeline.model.block-fit-steps, about as long as 25 training steps),
+    block's cameras observe (--pipeline.model.block-fit-steps; only the hash grids run),
     with its images' appearance embeddings copied. A run's config.yml from before this option loads
     as fresh, as it was trained."""
     train_blocks: bool = True
