@@ -111,11 +111,11 @@ def mean_image_baseline(data: Path, downscale: int) -> float:
     return sum(scores) / len(scores)
 
 
-def run_method(method: str, args: argparse.Namespace, workdir: Path) -> Dict:
+def run_method(method: str, args: argparse.Namespace, workdir: Path, settings: Dict[str, object]) -> Dict:
     out = workdir / f"{method}.json"
     steps = args.scalar_steps if method == "scalar-nerf" else 100000
     command = [sys.executable, str(Path(__file__).resolve()), "--worker", method, str(args.data), str(args.downscale),
-               str(args.minutes * 60), str(steps), str(out), json.dumps(parse_settings(args.scalar_set))]
+               str(args.minutes * 60), str(steps), str(out), json.dumps(settings)]
     print(f"[{time.strftime('%H:%M:%S')}] training {method} for {args.minutes} min ...", flush=True)
     subprocess.run(command, check=True, stdout=subprocess.DEVNULL if not args.verbose else None)
     return json.loads(out.read_text())
@@ -139,9 +139,9 @@ def main() -> None:
         method, data, downscale, seconds, steps, out, settings = args.worker
         train_one(method, data, int(downscale), float(seconds), int(steps), Path(out), json.loads(settings))
         return
-    parse_settings(args.scalar_set)  # a malformed setting is refused before anything trains
+    settings = parse_settings(args.scalar_set)  # a malformed setting is refused before anything trains
     args.workdir.mkdir(parents=True, exist_ok=True)
-    results: List[Dict] = [run_method(m, args, args.workdir) for m in args.methods]
+    results: List[Dict] = [run_method(m, args, args.workdir, settings) for m in args.methods]
     baseline = mean_image_baseline(args.data, args.downscale)
 
     print(f"\nscene {args.data.name}, downscale {args.downscale}, eval every 8th image, budget {args.minutes} min, mean-image baseline {baseline:.2f} dB")
