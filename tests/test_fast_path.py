@@ -135,3 +135,29 @@ def test_rendering_front_to_back_in_segments_gives_the_one_pass_image_with_fewer
     assert evaluated[2] <= evaluated[1] <= evaluated[0], evaluated
     if opacity > 1.0:  # opaque surfaces: the samples behind them are skipped
         assert evaluated[1] < 0.8 * evaluated[0], evaluated
+
+
+def test_training_rays_are_coarse_only_during_the_occupancy_warm_up() -> None:
+    """While the grid warms up (nothing skipped, every interval with gradients) a training ray has
+    ``warmup_samples_per_ray`` intervals; after the warm-up, and outside training, the full count."""
+    model = small_scalar_model(num_samples_per_ray=32, warmup_samples_per_ray=8, occupancy_warmup_steps=4, transmittance_threshold=0.0)
+    rays = _rays(64)
+    model.train()
+    model.update_occupancy(0)
+    assert model.occupancy.warming_up
+    assert int(model(rays)["samples_per_ray"].max()) == 8
+    model.eval()
+    with torch.no_grad():
+        assert int(model(rays)["samples_per_ray"].max()) == 32  # evaluation always samples fully
+    model.train()
+    model.update_occupancy(5)  # past the warm-up, although no cell was marked empty
+    assert not model.occupancy.warming_up and not model.occupancy.pruning
+    assert int(model(rays)["samples_per_ray"].max()) == 32
+
+
+def test_a_seeded_grid_has_no_coarse_warm_up() -> None:
+    model = small_scalar_model(num_samples_per_ray=32, warmup_samples_per_ray=8, transmittance_threshold=0.0).train()
+    model.occupancy.seed(torch.ones(model.occupancy.resolution**3))
+    model.update_occupancy(0)
+    assert not model.occupancy.warming_up
+    assert int(model(_rays(16))["samples_per_ray"].max()) == 32

@@ -95,6 +95,35 @@ def test_occupancy_grid_marks_dense_cells_and_indexes_in_range() -> None:
     assert ((indices >= 0) & (indices < 8**3)).all()
 
 
+def _sphere_density(unit: torch.Tensor) -> torch.Tensor:
+    return torch.where(torch.linalg.vector_norm(unit - 0.5, dim=-1) < 0.2, 100.0, 0.0)
+
+
+def test_the_grid_forgets_the_warm_up_haze_at_its_first_update_after_it() -> None:
+    """A young field is hazy everywhere; the update that ends the warm-up starts the estimates from the
+    field as it is then, so the haze does not keep empty space occupied for the rest of the run."""
+    grid = OccupancyGrid(resolution=8, update_every=4, warmup_steps=8)
+    for step in (0, 4):
+        grid.update(step, lambda unit: torch.full(unit.shape[:1], 100.0))
+        assert grid.warming_up and grid.occupied.all()
+    grid.update(8, _sphere_density)
+    assert not grid.warming_up
+    centre, corner = torch.tensor([[0.5, 0.5, 0.5]]), torch.tensor([[0.02, 0.02, 0.02]])
+    assert grid.is_occupied(centre).item() and not grid.is_occupied(corner).item()
+    assert 0.0 < grid.occupied_fraction() < 0.2
+    # later updates keep the decaying maximum: a cell seen dense stays occupied for a while
+    grid.update(12, lambda unit: torch.zeros(unit.shape[:1]))
+    assert grid.is_occupied(centre).item()
+
+
+def test_a_seeded_grid_keeps_its_estimates_past_the_warm_up_step() -> None:
+    grid = OccupancyGrid(resolution=8, update_every=4, warmup_steps=8)
+    grid.seed(torch.full((8**3,), 100.0))
+    assert not grid.warming_up
+    grid.update(8, _sphere_density)
+    assert grid.is_occupied(torch.tensor([[0.02, 0.02, 0.02]])).item()  # decayed from the seed, not restarted
+
+
 def test_schedule_warms_up_linearly_then_decays_to_a_tenth() -> None:
     factors = [warmup_exponential_decay_factor(s, 1000, 0.025, 0.1) for s in range(1001)]
     assert factors[0] == pytest.approx(1 / 25) and factors[12] == pytest.approx(12 / 25)

@@ -63,6 +63,10 @@ def flat_cell_indices(unit_positions: Tensor, resolution: int) -> Tensor:
     return cells[:, 0] * (g * g) + cells[:, 1] * g + cells[:, 2]
 
 
+#: Jittered points per cell of the update that follows the warm-up (which starts the estimates afresh).
+RESTART_POINTS_PER_CELL = 4
+
+
 class OccupancyGrid(nn.Module):
     """Occupancy over the contracted unit cube, updated from the field's density as it trains.
 
@@ -70,8 +74,10 @@ class OccupancyGrid(nn.Module):
         resolution: G, cells per axis.
         update_every: steps between updates.
         warmup_steps: until this step every update re-evaluates all cells and no cell is marked
-            empty (surfaces must form before empty space is decided); later, a random quarter of
-            the cells per update.
+            empty (surfaces must form before empty space is decided). The first update after it
+            re-evaluates every cell at :data:`RESTART_POINTS_PER_CELL` points and replaces the
+            estimates (the haze of a young field is forgotten); later, a random quarter of the
+            cells per update. A seeded grid has no warm-up.
         ema_decay: exponential moving average decay of a cell's density estimate.
         opacity_threshold: a cell is occupied when the opacity of its density estimate over the
             cell's world-space size, 1 - exp(-density * size), exceeds min(threshold, mean opacity)
@@ -103,6 +109,13 @@ class OccupancyGrid(nn.Module):
         # Seeded from another model's density (a block from the global model): no warm-up. Not saved
         # (checkpoints of older runs load): a resumed grid keeps its saved cells through a warm-up.
         self.register_buffer("seeded", torch.zeros((), dtype=torch.bool), persistent=False)
+        self._warming_up = True
+
+    @property
+    def warming_up(self) -> bool:
+        """Whether the step of the latest :meth:`update` call is inside the warm-up (True before the
+        first call; False once :meth:`seed` ed)."""
+        return self._warming_up and not bool(self.seeded)
 
     @staticmethod
     def _world_cell_sizes(resolution: int) -> Tensor:
@@ -161,22 +174,30 @@ class OccupancyGrid(nn.Module):
             step: training step; nothing happens unless ``step % update_every == 0``.
             density_fn: [M, 3] contracted unit-cube positions -> [M] density (1 / world unit).
         """
+        self._warming_up = step < self.warmup_steps
         if step % self.update_every != 0:
             return
         g = self.resolution
         device = self.density_ema.device
         num_cells = g**3
-        warming_up = step < self.warmup_steps and not bool(self.seeded)
-        if warming_up:
+        warming_up = self.warming_up
+        # The first update after the warm-up starts the estimates afresh from the field as it is now
+        # (the largest of a few jittered points per cell): the warm-up's early haze is forgotten.
+        restart = not warming_up and not bool(self.seeded) and step - self.update_every < self.warmup_steps <= step
+        if warming_up or restart:
             cells = torch.arange(num_cells, device=device)
         else:
             cells = torch.randint(0, num_cells, (num_cells // 4,), device=device)
         coords = cell_coordinates(cells, g)
-        positions = (coords + torch.rand_like(coords)) / g
-        densities = torch.nan_to_num(density_fn(positions).reshape(-1).float(), nan=0.0, posinf=1e6)
-        previous = self.density_ema[cells]
-        decayed = torch.where(torch.isinf(previous), densities, previous * self.ema_decay)
-        self.density_ema[cells] = torch.maximum(decayed, densities)
+        points = RESTART_POINTS_PER_CELL if restart else 1
+        positions = (coords[None] + torch.rand((points, *coords.shape), device=device)) / g
+        densities = torch.nan_to_num(density_fn(positions.reshape(-1, 3)).reshape(points, -1).float(), nan=0.0, posinf=1e6).amax(0)
+        if restart:
+            self.density_ema[cells] = densities
+        else:
+            previous = self.density_ema[cells]
+            decayed = torch.where(torch.isinf(previous), densities, previous * self.ema_decay)
+            self.density_ema[cells] = torch.maximum(decayed, densities)
         opacities = 1.0 - torch.exp(-(self.density_ema * self.cell_sizes).clamp(max=50.0))
         threshold = min(self.opacity_threshold, float(opacities.mean()))
         if not warming_up:
