@@ -2,7 +2,8 @@
 
 Rendering path (per ray batch, flat tensors, no nerfstudio RaySamples on the hot path):
 
-1. ``S`` intervals per ray, evenly spaced in Mip-NeRF 360's linear/disparity spacing.
+1. ``S`` intervals per ray, evenly spaced in Mip-NeRF 360's linear/disparity spacing (fewer,
+   ``warmup_samples_per_ray``, for training rays while the occupancy grid warms up).
 2. Samples in empty cells of the :class:`OccupancyGrid` are dropped.
 3. A no-grad density pass over the remaining samples finds where each ray's transmittance has
    fallen below ``transmittance_threshold``; those occluded samples are dropped too, and so are
