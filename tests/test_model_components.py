@@ -77,26 +77,22 @@ def test_opaque_surface_gets_all_the_weight_and_its_depth() -> None:
     assert torch.allclose(depth, torch.tensor([[3.0]]))
 
 
+def _sphere_density(unit: torch.Tensor) -> torch.Tensor:
+    return torch.where(torch.linalg.vector_norm(unit - 0.5, dim=-1) < 0.2, 100.0, 0.0)
+
+
 def test_occupancy_grid_marks_dense_cells_and_indexes_in_range() -> None:
     grid = OccupancyGrid(resolution=8, update_every=1, warmup_steps=1)
     assert grid.occupied.all()  # nothing is skipped before the first update
-
-    def sphere_density(unit: torch.Tensor) -> torch.Tensor:
-        return torch.where(torch.linalg.vector_norm(unit - 0.5, dim=-1) < 0.2, 100.0, 0.0)
-
-    grid.update(0, sphere_density)
+    grid.update(0, _sphere_density)
     assert grid.occupied.all()  # warm-up: densities are estimated everywhere, nothing is marked empty yet
-    grid.update(1, sphere_density)
+    grid.update(1, _sphere_density)
     centre, corner = torch.tensor([[0.5, 0.5, 0.5]]), torch.tensor([[0.02, 0.02, 0.02]])
     assert grid.is_occupied(centre).item() and not grid.is_occupied(corner).item()
     assert 0.0 < grid.occupied_fraction() < 0.2
     wild = torch.tensor([[-1.0, 2.0, float("nan")], [1.0, 1.0, 1.0], [0.0, 0.0, 0.0]])
     indices = grid.cell_indices(wild)
     assert ((indices >= 0) & (indices < 8**3)).all()
-
-
-def _sphere_density(unit: torch.Tensor) -> torch.Tensor:
-    return torch.where(torch.linalg.vector_norm(unit - 0.5, dim=-1) < 0.2, 100.0, 0.0)
 
 
 def test_the_grid_forgets_the_warm_up_haze_at_its_first_update_after_it() -> None:

@@ -114,7 +114,7 @@ class OccupancyGrid(nn.Module):
     @property
     def warming_up(self) -> bool:
         """Whether the step of the latest :meth:`update` call is inside the warm-up (True before the
-        first call; False once :meth:`seed` ed)."""
+        first call; always False for a seeded grid, see :meth:`seed`)."""
         return self._warming_up and not bool(self.seeded)
 
     @staticmethod
@@ -183,7 +183,7 @@ class OccupancyGrid(nn.Module):
         warming_up = self.warming_up
         # The first update after the warm-up starts the estimates afresh from the field as it is now
         # (the largest of a few jittered points per cell): the warm-up's early haze is forgotten.
-        restart = not warming_up and not bool(self.seeded) and step - self.update_every < self.warmup_steps <= step
+        restart = step - self.update_every < self.warmup_steps <= step and not bool(self.seeded)
         if warming_up or restart:
             cells = torch.arange(num_cells, device=device)
         else:
