@@ -25,6 +25,7 @@ from scalar_nerfstudio.blocks.observation import block_observation
 from scalar_nerfstudio.blocks.plan import BlockPlan, PlanSettings, load_plan, plan_blocks
 from scalar_nerfstudio.blocks.split import BlockSplit, BlockSplitError, format_split_table, load_blocks_json
 from scalar_nerfstudio.data.datamanager import ScalarDataManagerConfig, camera_centres, camera_layout
+from scalar_nerfstudio.engine.device import keep_freed_memory
 from scalar_nerfstudio.runs import block_models_dir
 from scalar_nerfstudio.viewer import BlockOverlay, CoarseFirstRender, fusion_dropdown
 from scalar_nerfstudio.models.scene_model import BlockInit, DecoderMode, ScalarSceneModel, ScalarSceneModelConfig
@@ -167,6 +168,8 @@ class ScalarPipeline(VanillaPipeline):
         Pipeline.__init__(self)
         if world_size > 1:
             raise NotImplementedError("scalar-nerf trains on one device; use scalar-nerf-block to spread blocks over machines")
+        if torch.device(device).type == "cpu":
+            keep_freed_memory()  # training, evaluation, rendering and the viewer all reuse freed tensor memory
         self.config = config
         self.test_mode = test_mode
         self.world_size = world_size

@@ -1,16 +1,18 @@
-"""The training device is chosen when the trainer is built, not when the method configs are imported."""
+"""The training device is chosen when the trainer is built, not when the method configs are imported; the
+process settings for CPU work (oneDNN's kernel cache, glibc's reuse of freed memory)."""
 
 from __future__ import annotations
 
-import os
 import copy
+import os
+import resource
 import subprocess
 import sys
 
 import pytest
 import torch
 
-from scalar_nerfstudio.engine.device import AutoMachineConfig, resolve_device_type, resolve_machine
+from scalar_nerfstudio.engine.device import GLIBC_MALLOC_ENV, AutoMachineConfig, keep_freed_memory, resolve_device_type, resolve_machine
 from scalar_nerfstudio.engine.trainer import ScalarTrainer
 
 
@@ -57,3 +59,33 @@ def test_onednn_kernel_cache_is_limited_unless_the_user_set_it(monkeypatch: pyte
     assert limit_onednn_kernel_cache() and os.environ[ONEDNN_CACHE_ENV] == "0"
     monkeypatch.setenv(ONEDNN_CACHE_ENV, "256")
     assert not limit_onednn_kernel_cache() and os.environ[ONEDNN_CACHE_ENV] == "256"
+
+
+_REALLOCATE = """
+import resource, torch
+from scalar_nerfstudio.engine.device import keep_freed_memory
+assert keep_freed_memory()
+def faults(): return resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+for _ in range(2):  # 64 MB, allocated and freed: the heap grows to hold it
+    torch.ones(1 << 24)
+for _ in range(7):
+    before = faults()
+    torch.ones(1 << 24)
+    print(faults() - before)
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's malloc")
+def test_freed_tensor_memory_is_reused_without_new_page_faults() -> None:
+    # By default glibc maps every large tensor afresh: each 64 MB tensor faults in its 16384 pages again.
+    env = {k: v for k, v in os.environ.items() if k not in GLIBC_MALLOC_ENV}
+    result = subprocess.run([sys.executable, "-c", _REALLOCATE], env=env, capture_output=True, text=True, check=True)
+    faults_per_tensor = sorted(int(line) for line in result.stdout.split())
+    pages_per_tensor = (1 << 26) // resource.getpagesize()
+    assert faults_per_tensor[len(faults_per_tensor) // 2] < 0.05 * pages_per_tensor, faults_per_tensor
+
+
+@pytest.mark.parametrize("name", GLIBC_MALLOC_ENV)
+def test_malloc_settings_of_the_user_are_left_alone(name: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv(name, "1")
+    assert not keep_freed_memory()

@@ -25,7 +25,7 @@ def _field(precision: str) -> ScalarField:
 def _outputs_and_decoder_grads(field: ScalarField, points: torch.Tensor, directions: torch.Tensor):
     field.zero_grad()
     density, geo = field.density_at_unit(points)
-    rgb = field.colour(geo, directions, torch.zeros(points.shape[0], dtype=torch.long))
+    rgb = field.colour(geo, directions, torch.arange(points.shape[0]), torch.zeros(points.shape[0], dtype=torch.long))
     (density.log1p().sum() + rgb.square().sum()).backward()
     grads = torch.cat([p.grad.reshape(-1) for p in field.decoder.parameters()])
     return density, rgb, grads
@@ -47,6 +47,59 @@ def test_bfloat16_decoder_matches_float32_and_keeps_float32_outputs_and_grads() 
     assert torch.nn.functional.cosine_similarity(grads16, grads32, dim=0) > 0.99
     # the encoder (C++ or torch kernel) gets float32 gradients either way
     assert all(p.grad is None or p.grad.dtype == torch.float32 for p in bf16.encoder.parameters())
+
+
+@pytest.mark.skipif(not scalar_field.fused_linear_available(), reason="this torch has no oneDNN fused linear kernel")
+@pytest.mark.parametrize("precision", ["float32", "bfloat16"])
+def test_evaluation_without_autograd_runs_the_fused_decoder_and_gives_the_training_path_outputs(
+    precision: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    field = _field(precision)
+    with torch.no_grad():  # a trained-looking decoder: weights well away from their initial scale
+        for parameter in field.decoder.parameters():
+            parameter.mul_(3.0)
+    generator = torch.Generator().manual_seed(3)
+    points = torch.rand(5000, 3, generator=generator)
+    directions = torch.nn.functional.normalize(torch.randn(5000, 3, generator=generator), dim=-1)
+    camera_indices = torch.zeros(5000, dtype=torch.long)
+    fused_calls = []
+    run_fused = scalar_field.run_mlp_fused
+    monkeypatch.setattr(scalar_field, "run_mlp_fused", lambda *args: fused_calls.append(1) or run_fused(*args))
+
+    density_grad, geo_grad = field.density_at_unit(points)  # autograd on: nn.Linear as in training
+    rgb_grad = field.colour(geo_grad, directions, torch.arange(5000), camera_indices)
+    assert not fused_calls and density_grad.requires_grad
+    with torch.no_grad():
+        density, geo = field.density_at_unit(points)
+        rgb = field.colour(geo, directions, torch.arange(5000), camera_indices)
+    assert len(fused_calls) == 2  # density head and colour head
+    assert density.dtype == rgb.dtype == torch.float32
+    # the same products in the same precision: only the order of the bias addition may differ
+    tolerance = 1e-5 if precision == "float32" else 1e-2
+    assert torch.allclose(density, density_grad.detach(), rtol=tolerance, atol=1e-6)
+    assert (rgb - rgb_grad.detach()).abs().max() < tolerance
+
+
+def test_colour_of_samples_takes_its_direction_and_appearance_from_the_sample_s_ray() -> None:
+    field = _field("float32").train()
+    generator = torch.Generator().manual_seed(4)
+    with torch.no_grad():
+        field.appearance.weight.normal_(generator=generator)  # images that look different
+    ray_directions = torch.nn.functional.normalize(torch.randn(6, 3, generator=generator), dim=-1)
+    camera_indices = torch.tensor([0, 1, 2, 0, 1, 2])
+    ray_ids = torch.tensor([5, 0, 0, 3, 1, 1, 1, 4, 2])  # samples of 6 rays, in any order
+    _, geo = field.density_at_unit(torch.rand(9, 3, generator=generator))
+    per_ray = field.colour(geo, ray_directions, ray_ids, camera_indices)
+    per_sample = field.colour(geo, ray_directions[ray_ids], torch.arange(9), camera_indices[ray_ids])
+    assert torch.allclose(per_ray, per_sample)
+    other_image = field.colour(geo, ray_directions, ray_ids, (camera_indices + 1) % 3)
+    assert (other_image - per_ray).abs().max() > 1e-4  # the appearance of each ray's image is used
+
+
+def test_the_fused_decoder_takes_only_linear_and_relu_layers() -> None:
+    mlp = torch.nn.Sequential(torch.nn.Linear(4, 8), torch.nn.Sigmoid(), torch.nn.Linear(8, 2))
+    with pytest.raises(TypeError, match="Sigmoid"):
+        scalar_field.run_mlp_fused(mlp, torch.zeros(3, 4), torch.float32)
 
 
 @pytest.mark.parametrize("fast", [True, False])

@@ -34,10 +34,10 @@ def contract(positions: Tensor) -> Tensor:
     """
     x = torch.nan_to_num(positions, nan=0.0, posinf=_MAX_COORDINATE, neginf=-_MAX_COORDINATE)
     x = x.clamp(-_MAX_COORDINATE, _MAX_COORDINATE)
-    scale = x.abs().amax(dim=-1, keepdim=True).clamp_min(1e-30)
-    norm = scale * torch.linalg.vector_norm(x / scale, dim=-1, keepdim=True)
-    outside = (2.0 - 1.0 / norm.clamp_min(1.0)) * (x / norm.clamp_min(1.0))
-    return torch.where(norm <= 1.0, x, outside)
+    norm = torch.linalg.vector_norm(x, dim=-1, keepdim=True)  # [N, 1]; squares of |x| <= 1e18 stay finite
+    inverse = 1.0 / norm.clamp_min(1.0)
+    # one [N, 1] factor, then one pass over [N, 3]: x inside the unit ball, (2 - 1/|x|) x/|x| beyond
+    return x * torch.where(norm <= 1.0, torch.ones_like(norm), (2.0 - inverse) * inverse)
 
 
 def contract_to_unit_cube(positions: Tensor) -> Tensor:
@@ -88,6 +88,48 @@ def encode_with_position_gradients(encoder: HashGridEncoding, positions: Tensor)
     return torch.cat(levels, dim=-1)
 
 
+def fused_linear_available() -> bool:
+    """Whether oneDNN's fused linear + bias + activation CPU kernel (``torch.ops.mkldnn._linear_pointwise``) exists here."""
+    try:
+        return bool(torch.backends.mkldnn.is_available()) and hasattr(torch.ops.mkldnn, "_linear_pointwise")
+    except (AttributeError, RuntimeError):
+        return False
+
+
+def cpu_autocast_dtype() -> Optional[torch.dtype]:
+    """The dtype CPU autocast runs matrix products in here, or None when it is off (torch >= 2.1)."""
+    if hasattr(torch, "get_autocast_dtype"):  # torch >= 2.4; the older functions below are deprecated there
+        return torch.get_autocast_dtype("cpu") if torch.is_autocast_enabled("cpu") else None
+    return torch.get_autocast_cpu_dtype() if torch.is_autocast_cpu_enabled() else None
+
+
+def run_mlp_fused(mlp: nn.Sequential, inputs: Tensor, dtype: torch.dtype) -> Tensor:
+    """A stack of ``nn.Linear`` (each optionally followed by ``nn.ReLU``) on the CPU without autograd,
+    through oneDNN's fused kernel: bias and ReLU are applied as the product is written, instead of
+    a bias broadcast before it and a ReLU pass after it (each a full pass over an [N, 128] tensor).
+    The colour head on 355k samples: 51 -> 36 ms in bfloat16, 111 -> 64 ms in float32 (2 cores).
+
+    Args:
+        mlp: the layers (their weights are cast to ``dtype`` per call: a few kB).
+        inputs: [N, in] CPU tensor.
+        dtype: precision of the products and of the result (bfloat16 or float32).
+
+    Returns:
+        [N, out] in ``dtype``, equal to ``mlp(inputs)`` in that precision.
+    """
+    layers = list(mlp)
+    hidden = inputs.to(dtype)
+    for index, layer in enumerate(layers):
+        if isinstance(layer, nn.ReLU):
+            continue
+        if not isinstance(layer, nn.Linear):
+            raise TypeError(f"run_mlp_fused takes Linear and ReLU layers, got {type(layer).__name__}")
+        relu = index + 1 < len(layers) and isinstance(layers[index + 1], nn.ReLU)
+        bias = layer.bias.to(dtype) if layer.bias is not None else None
+        hidden = torch.ops.mkldnn._linear_pointwise(hidden, layer.weight.to(dtype), bias, "relu" if relu else "none", [], "")
+    return hidden
+
+
 class Decoder(nn.Module):
     """MLP decoder of depth 5 (2 density layers + 3 colour layers), all hidden layers of one width.
 
@@ -105,6 +147,7 @@ class Decoder(nn.Module):
         super().__init__()
         self.geo_feat_dim = geo_feat_dim
         self.density_bias = density_bias
+        self.fused_cpu_inference = fused_linear_available()
         self.density_mlp = nn.Sequential(
             nn.Linear(in_dim, hidden_dim), nn.ReLU(inplace=True), nn.Linear(hidden_dim, 1 + geo_feat_dim)
         )
@@ -120,15 +163,23 @@ class Decoder(nn.Module):
         """[N, in_dim] encoder features -> ([N] float32 density in 1/world unit, [N, geo_feat_dim] features).
 
         Under autocast the matrix products run in low precision; the density's exponential does not.
+        Without autograd on the CPU the layers run fused (:func:`run_mlp_fused`).
         """
-        out = self.density_mlp(features)
+        out = self._mlp(self.density_mlp, features)
         density = trunc_exp(out[:, 0].float() + self.density_bias)
         return density, out[:, 1:]
 
     def colour(self, geo_features: Tensor, encoded_directions: Tensor, appearance: Tensor) -> Tensor:
         """[N, geo], [N, dir], [N, app] -> [N, 3] float32 RGB in [0, 1]."""
         inputs = torch.cat([geo_features, encoded_directions.to(geo_features.dtype), appearance.to(geo_features.dtype)], dim=-1)
-        return torch.sigmoid(self.colour_mlp(inputs).float())
+        return torch.sigmoid(self._mlp(self.colour_mlp, inputs).float())
+
+    def _mlp(self, mlp: nn.Sequential, inputs: Tensor) -> Tensor:
+        """``mlp(inputs)``; without autograd on the CPU, through :func:`run_mlp_fused` in the precision
+        autocast asks for (float32 outside autocast)."""
+        if not self.fused_cpu_inference or torch.is_grad_enabled() or inputs.device.type != "cpu":
+            return mlp(inputs)
+        return run_mlp_fused(mlp, inputs, cpu_autocast_dtype() or inputs.dtype)
 
 
 def cpu_bfloat16_is_fast() -> bool:
@@ -233,9 +284,19 @@ class ScalarField(nn.Module):
         mean = self.appearance.weight.mean(dim=0, keepdim=True)
         return mean.expand(num_points, -1)
 
-    def colour(self, geo_features: Tensor, directions: Tensor, camera_indices: Optional[Tensor]) -> Tensor:
-        """[N, geo], [N, 3] unit view directions, [N] image indices -> [N, 3] RGB."""
-        encoded = self.direction_encoding(directions)  # torch SH takes unit vectors in [-1, 1]
-        appearance = self.appearance_for(camera_indices, geo_features.shape[0])
+    def colour(self, geo_features: Tensor, ray_directions: Tensor, ray_ids: Tensor, camera_indices: Optional[Tensor]) -> Tensor:
+        """RGB of samples on rays: the view-direction encoding and the appearance are computed once per ray.
+
+        Args:
+            geo_features: [M, geo] features of the samples (from :meth:`density_at_unit`).
+            ray_directions: [R, 3] unit view directions of the rays.
+            ray_ids: [M] the ray of each sample (indices into the R rays).
+            camera_indices: [R] training-image index of each ray, or None.
+
+        Returns:
+            [M, 3] float32 RGB in [0, 1].
+        """
+        encoded = self.direction_encoding(ray_directions)[ray_ids]  # torch SH takes unit vectors in [-1, 1]
+        appearance = self.appearance_for(camera_indices, ray_directions.shape[0])[ray_ids]
         with self._decoder_autocast(geo_features):
             return self.decoder.colour(geo_features, encoded, appearance)

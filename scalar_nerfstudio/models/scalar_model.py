@@ -326,8 +326,7 @@ class ScalarModel(NormalsOutput, Model):
         else:  # rendering: one field pass over the occupied samples serves the occlusion test and the colour
             sample_ids, density, geo = self._visible_samples_with_features(unit_positions, deltas)
         ray_ids = torch.div(sample_ids, num_samples, rounding_mode="floor")
-        point_indices = camera_indices[ray_ids] if camera_indices is not None else None
-        rgb_points = self.field.colour(geo, directions[ray_ids], point_indices)
+        rgb_points = self.field.colour(geo, directions, ray_ids, camera_indices)
         # Volume rendering in float32 also under autocast (bf16/fp16 cumulative sums drift).
         density, rgb_points = density.float(), rgb_points.float()
 
