@@ -7,6 +7,10 @@ in alternating rounds, so a slow moment of the machine does not fall on one mode
 
     python benchmarks/bench_render.py --load-config outputs/bench_training/runs/castle-P30/scalar-nerf/<ts>/config.yml
     python benchmarks/bench_render.py --load-config RUN/config.yml --fusion nearest global-only --json out.json
+    python benchmarks/bench_render.py --load-config RUN/config.yml --model-setting grid_alpha_skip=False grid_alpha_skip=True
+
+``--model-setting NAME=VALUE ...`` times each setting of the models' config (the global model's and
+every block in memory) as a variant of its own, in the same alternating rounds.
 """
 
 from __future__ import annotations
@@ -16,7 +20,7 @@ import json
 import statistics
 import time
 from pathlib import Path
-from typing import Dict, List
+from typing import Dict, List, Tuple
 
 
 def main() -> None:
@@ -25,6 +29,8 @@ def main() -> None:
     parser.add_argument("--fusion", nargs="+", default=["global-only"], help="fusion modes to time (a run with K = 1 has global-only)")
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--json", type=Path, default=None)
+    parser.add_argument("--model-setting", nargs="+", default=[], metavar="NAME=VALUE",
+                        help="model config settings to compare, each a variant (e.g. grid_alpha_skip=False grid_alpha_skip=True)")
     args = parser.parse_args()
 
     import torch
@@ -37,30 +43,62 @@ def main() -> None:
     dataset = pipeline.datamanager.eval_dataset
     cameras = dataset.cameras
     targets = [dataset[i]["image"][..., :3] for i in range(len(cameras))]
-    times: Dict[str, List[float]] = {mode: [] for mode in args.fusion}
-    scores: Dict[str, List[float]] = {}
+    settings = [_parse_setting(text) for text in args.model_setting] or [None]
+    variants = [(mode, setting) for mode in args.fusion for setting in settings]
+    times: Dict[Tuple[str, object], List[float]] = {variant: [] for variant in variants}
+    scores: Dict[Tuple[str, object], List[float]] = {}
     with torch.no_grad():
         for round_index in range(args.rounds + 1):  # round 0 warms up and is not counted
-            for mode in args.fusion:
+            for mode, setting in variants:
                 model.set_fusion(mode)
-                scores[mode] = []
+                _apply_setting(model, setting)
+                scores[(mode, setting)] = []
                 for index in range(len(cameras)):
                     start = time.perf_counter()
                     outputs = model.get_outputs_for_camera(cameras[index : index + 1])
                     if round_index > 0:
-                        times[mode].append(time.perf_counter() - start)
-                    scores[mode].append(float(psnr(outputs["rgb"].clamp(0.0, 1.0), targets[index].to(outputs["rgb"]))))
+                        times[(mode, setting)].append(time.perf_counter() - start)
+                    scores[(mode, setting)].append(float(psnr(outputs["rgb"].clamp(0.0, 1.0), targets[index].to(outputs["rgb"]))))
     height, width = int(cameras.height[0]), int(cameras.width[0])
     results = []
     print(f"{args.load_config}: {len(cameras)} eval views of {width}x{height}, {torch.get_num_threads()} threads, {args.rounds} rounds")
-    for mode in args.fusion:
-        row = {"fusion": mode, "median_ms": 1000 * statistics.median(times[mode]), "min_ms": 1000 * min(times[mode]),
-               "psnr": sum(scores[mode]) / len(scores[mode]), "views": len(cameras), "width": width, "height": height}
+    for mode, setting in variants:
+        label = mode if setting is None else f"{mode} {setting[0]}={setting[1]}"
+        row = {"fusion": mode, "setting": None if setting is None else f"{setting[0]}={setting[1]}",
+               "median_ms": 1000 * statistics.median(times[(mode, setting)]), "min_ms": 1000 * min(times[(mode, setting)]),
+               "psnr": sum(scores[(mode, setting)]) / len(scores[(mode, setting)]), "views": len(cameras), "width": width, "height": height}
         results.append(row)
-        print(f"{mode:<12} median {row['median_ms']:.0f} ms / view, fastest {row['min_ms']:.0f} ms, held-out PSNR {row['psnr']:.2f} dB")
+        print(f"{label:<12} median {row['median_ms']:.0f} ms / view, fastest {row['min_ms']:.0f} ms, held-out PSNR {row['psnr']:.2f} dB")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps({"config": str(args.load_config), "threads": torch.get_num_threads(), "rounds": args.rounds, "results": results}, indent=2))
+
+
+def _parse_setting(text: str) -> Tuple[str, object]:
+    """"NAME=VALUE" -> (NAME, VALUE as a Python literal, or the string itself)."""
+    import ast
+
+    name, separator, value = text.partition("=")
+    if not separator or not name:
+        raise SystemExit(f"--model-setting {text!r}: expected NAME=VALUE")
+    try:
+        return name, ast.literal_eval(value)
+    except (ValueError, SyntaxError):
+        return name, value
+
+
+def _apply_setting(model, setting) -> None:
+    """Set ``setting`` (NAME, VALUE) on the config of every ScalarModel inside ``model``."""
+    from scalar_nerfstudio.models.scalar_model import ScalarModel
+
+    if setting is None:
+        return
+    name, value = setting
+    models = [module for module in model.modules() if isinstance(module, ScalarModel)]
+    for scalar_model in models:
+        if not hasattr(scalar_model.config, name):
+            raise SystemExit(f"--model-setting: the model config has no {name!r}")
+        setattr(scalar_model.config, name, value)
 
 
 if __name__ == "__main__":

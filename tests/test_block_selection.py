@@ -213,7 +213,7 @@ def test_a_block_grid_seeded_from_the_global_density_skips_empty_space_at_once()
     ball = torch.tensor([0.5, 0.0, 0.0])
     global_model = small_scalar_model()
 
-    def ball_density(unit: torch.Tensor):  # a ball of radius 0.1 at x = 0.5, empty elsewhere
+    def ball_density(unit: torch.Tensor, encoding=None):  # a ball of radius 0.1 at x = 0.5, empty elsewhere
         inside = torch.linalg.vector_norm(unit_cube_to_world(unit) - ball, dim=-1) < 0.1
         return 400.0 * inside.float(), torch.zeros(unit.shape[0], 15)
 
@@ -273,7 +273,7 @@ def test_depth_from_the_occupancy_grid_is_close_to_the_fields() -> None:
     from scalar_nerfstudio.fields.scalar_field import unit_cube_to_world
 
     model = small_scalar_model(num_samples_per_ray=64, occupancy_warmup_steps=0)
-    model.field.density_at_unit = lambda unit: (  # a wall filling x > 0.4
+    model.field.density_at_unit = lambda unit, encoding=None: (  # a wall filling x > 0.4
         200.0 * torch.sigmoid((unit_cube_to_world(unit)[:, 0] - 0.4) / 0.01), torch.zeros(unit.shape[0], 15))
     model.eval()
     for step in range(0, 16 * 8, 16):  # every cell seen (a quarter per update after the warm-up: several updates)

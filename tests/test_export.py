@@ -14,7 +14,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Callable, Tuple
+from typing import Callable, Optional, Tuple
 
 import numpy as np
 import pytest
@@ -52,7 +52,7 @@ def _model_with_density(density: DensityFn, **config: object) -> ScalarModel:
     model = small_scalar_model(num_train_data=1, **config)
     density_at_unit = model.field.density_at_unit
 
-    def field_density(unit_positions: Tensor) -> Tuple[Tensor, Tensor]:
+    def field_density(unit_positions: Tensor, encoding: Optional[Tensor] = None) -> Tuple[Tensor, Tensor]:
         _, geo_features = density_at_unit(unit_positions)
         return density(_world(unit_positions)), geo_features
 

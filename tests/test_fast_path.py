@@ -171,9 +171,9 @@ def test_rendering_front_to_back_in_segments_gives_the_one_pass_image_with_fewer
     evaluated = []
     density_at_unit = model.field.density_at_unit
 
-    def counting(unit_positions):
+    def counting(unit_positions, encoding=None):
         evaluated[-1] += unit_positions.shape[0]
-        return density_at_unit(unit_positions)
+        return density_at_unit(unit_positions, encoding=encoding)
 
     monkeypatch.setattr(model.field, "density_at_unit", counting)
     outputs = {}
@@ -214,3 +214,42 @@ def test_a_seeded_grid_has_no_coarse_warm_up() -> None:
     model.update_occupancy(0)
     assert not model.occupancy.warming_up
     assert int(model(_rays(16))["samples_per_ray"].max()) == 32
+
+
+def test_a_training_step_encodes_each_sample_once_with_the_gradients_of_encoding_twice(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The pass with gradients reuses the no-grad pass's hash-grid encoding of the kept samples: the
+    encoder runs over each candidate once, and the table gets the gradient it got when the kept
+    samples were encoded again."""
+    # without the grid's own opacity test, the no-grad pass is what drops samples here
+    model = small_scalar_model(num_samples_per_ray=32, occupancy_warmup_steps=0, background_color="grey", grid_alpha_skip=False)
+    model.train()
+    model.update_occupancy(0)
+    generator = torch.Generator().manual_seed(0)
+    rays = ray_bundle(torch.rand(256, 3, generator=generator) * 0.4 - 0.2,
+                      torch.nn.functional.normalize(torch.randn(256, 3, generator=generator), dim=-1))
+    encoder = model.field.encoder
+    encoded = []
+    original_forward = encoder.forward
+
+    def counting_forward(positions: torch.Tensor) -> torch.Tensor:
+        encoded.append(positions.reshape(-1, 3).shape[0])
+        return original_forward(positions)
+
+    def gradients() -> tuple:
+        model.zero_grad()
+        torch.manual_seed(1)  # the same jittered samples in both passes
+        outputs = model(rays)
+        outputs["rgb"].square().sum().backward()
+        return outputs, model.field.encoder.table.grad.clone(), model.field.decoder.density_mlp[0].weight.grad.clone()
+
+    monkeypatch.setattr(encoder, "forward", counting_forward)
+    outputs, table_grad, decoder_grad = gradients()
+    kept = int(outputs["samples_per_ray"].sum())
+    assert 0 < kept < sum(encoded) == encoded[0]  # the no-grad pass over the candidates, nothing after it
+    encoded.clear()
+    monkeypatch.setattr(encoder, "with_table_gradient", lambda positions, encoding: counting_forward(positions))
+    again, table_grad_again, decoder_grad_again = gradients()  # the kept samples encoded a second time
+    assert encoded[-1] == kept and int(again["samples_per_ray"].sum()) == kept
+    assert table_grad.abs().sum() > 0
+    torch.testing.assert_close(table_grad, table_grad_again, atol=1e-7, rtol=0)
+    torch.testing.assert_close(decoder_grad, decoder_grad_again, atol=1e-7, rtol=0)

@@ -107,6 +107,29 @@ def test_backward_matches_reference(encode: Encode, features: int) -> None:
     assert_grad_close(actual, expected)
 
 
+
+@pytest.mark.parametrize("implementation", ["torch", "cpp"])
+def test_an_encoding_computed_without_autograd_gets_the_tables_gradient(implementation: str) -> None:
+    """A training step encodes its samples once, in the no-grad pass; joined to the table's graph
+    later, that encoding gives the table exactly the gradient of encoding them again."""
+    if implementation == "cpp":
+        skip_without_cpp()
+    torch.manual_seed(0)
+    enc = HashGridEncoding(8, 4, 12, 4, 256, implementation=implementation, init_scale=1.0)
+    positions = sample_points(enc.resolutions)  # NaN, infinities and points outside [0, 1] included
+    upstream = torch.randn(positions.shape[0], enc.get_out_dim(), generator=torch.Generator().manual_seed(3))
+    (expected,) = torch.autograd.grad(enc(positions), enc.table, upstream)
+    with torch.no_grad():
+        encoding = enc(positions)
+    joined = enc.with_table_gradient(positions, encoding)
+    assert joined.requires_grad and torch.equal(joined, encoding)
+    (actual,) = torch.autograd.grad(joined, enc.table, upstream)
+    assert torch.isfinite(actual).all()
+    torch.testing.assert_close(actual, expected, atol=1e-6, rtol=0)
+    with pytest.raises(ValueError, match=r"encoding \[N, 32\]"):
+        enc.with_table_gradient(positions, encoding[:, :16])
+
+
 def test_cpp_is_deterministic_across_thread_counts() -> None:
     """Forward splits points over threads, backward splits levels: both are bitwise independent of
     the thread count, and match the reference with 2 threads."""

@@ -120,6 +120,79 @@ def test_a_seeded_grid_keeps_its_estimates_past_the_warm_up_step() -> None:
     assert grid.is_occupied(torch.tensor([[0.02, 0.02, 0.02]])).item()  # decayed from the seed, not restarted
 
 
+
+def test_a_sample_is_worth_evaluating_when_its_cells_estimate_makes_it_opaque_enough() -> None:
+    """Samples of an occupied cell are evaluated only when the largest density estimate around the
+    cell, over the sample's own interval, reaches the opacity threshold; cells never evaluated, NaN
+    and infinite intervals count as opaque, and an empty cell is never evaluated."""
+    grid = OccupancyGrid(resolution=8, update_every=1, warmup_steps=0)
+    estimates = torch.zeros(8, 8, 8)
+    estimates[:4] = 1.0  # haze at 1 / unit in the half x < 0.5
+    estimates[0, 0, 0] = 50.0  # a dense corner cell: its face neighbours are evaluated too
+    estimates[7, 7, 7] = float("inf")  # never evaluated
+    grid.density_ema.copy_(estimates.reshape(-1))
+    grid.occupied.copy_(grid.density_ema > 0)
+
+    def centre(x: int, y: int, z: int) -> torch.Tensor:
+        return (torch.tensor([x, y, z], dtype=torch.float32) + 0.5) / 8
+
+    hazy, beside_dense, never, empty = centre(2, 3, 4), centre(1, 0, 0), centre(7, 7, 7), centre(6, 2, 2)
+    positions = torch.stack([hazy, hazy, hazy, hazy, hazy, beside_dense, never, never, empty, empty])
+    deltas = torch.tensor([0.005, 0.0101, 1.0, float("nan"), float("inf"), 0.005, 0.0, 1e-30, 1e6, float("nan")])
+    worth = grid.worth_evaluating(positions, deltas, alpha_threshold=0.01)
+    # 1 - exp(-0.005) < 0.01 <= 1 - exp(-0.0101); 50 / unit over 0.005 is opacity 0.22
+    assert worth.tolist() == [False, True, True, True, True, True, True, True, False, False]
+    assert grid.worth_evaluating(positions, deltas, alpha_threshold=0.0).tolist() == grid.is_occupied(positions).tolist()
+    assert grid.worth_evaluating(positions[2:3], deltas[2:3], alpha_threshold=1.0).tolist() == [False]  # opacity 0.63 < 1
+    assert grid.worth_evaluating(positions[4:5], deltas[4:5], alpha_threshold=1.0).tolist() == [True]
+    # the neighbourhood follows the estimates: an update replaces the cached maximum
+    grid.update(0, lambda unit: torch.full(unit.shape[:1], 0.5))  # restart: every estimate is 0.5 now
+    assert grid.is_occupied(positions[5:6]).item()
+    assert not grid.worth_evaluating(positions[5:6], deltas[5:6], alpha_threshold=0.01).item()  # 0.5 over 0.005
+
+
+def test_skipping_hazy_samples_by_the_grid_renders_the_same_image_with_fewer_evaluations(monkeypatch: pytest.MonkeyPatch) -> None:
+    """An opaque ball in faint haze: the haze's samples are below the opacity threshold, so the field
+    drops them after evaluating them; the grid's estimate drops them before. Same image, fewer
+    field evaluations (rendering and the training step's no-grad pass)."""
+    images, evaluated = {}, {}
+    for skip in (False, True):
+        model = small_scalar_model(num_train_data=1, num_samples_per_ray=64, occupancy_warmup_steps=0, grid_alpha_skip=skip)
+        density_at_unit = model.field.density_at_unit
+        counts = []
+
+        def ball_in_haze(unit_positions: torch.Tensor, encoding=None):
+            counts.append(unit_positions.shape[0])
+            _, geo_features = density_at_unit(unit_positions)
+            world = (unit_positions - 0.5) * 4.0  # inverse contraction inside the unit ball
+            inside = torch.linalg.vector_norm(world - torch.tensor([0.5, 0.0, 0.0]), dim=-1) < 0.2
+            hazy = torch.linalg.vector_norm(world, dim=-1) < 0.9  # opacity 0.0125 per cell, 0.006 per sample
+            return torch.where(inside, 200.0, torch.where(hazy, 0.2, 0.0)), geo_features
+
+        model.field.density_at_unit = ball_in_haze
+        for step in range(0, 16 * 8, 16):  # every cell seen (a quarter per update after the first)
+            model.update_occupancy(step)
+        assert model.occupancy.pruning
+        generator = torch.Generator().manual_seed(0)
+        directions = torch.nn.functional.normalize(torch.cat([torch.ones(128, 1), (torch.rand(128, 2, generator=generator) - 0.5) * 0.5], dim=-1), dim=-1)
+        rays = ray_bundle(torch.zeros(128, 3), directions)
+        model.eval()
+        counts.clear()
+        with torch.no_grad():
+            images[skip] = model(rays)
+        evaluated[skip] = sum(counts)
+        model.train()
+        counts.clear()
+        torch.manual_seed(0)
+        model(rays)["rgb"].sum().backward()  # the training step's no-grad pass, then its pass with gradients
+        evaluated[(skip, "train")] = counts[0]
+    assert images[True]["accumulation"].min() > 0.9  # every ray hits the ball
+    for key in ("rgb", "depth", "accumulation"):
+        torch.testing.assert_close(images[True][key], images[False][key], atol=1e-3, rtol=0)
+    assert evaluated[True] < 0.8 * evaluated[False], evaluated
+    assert evaluated[(True, "train")] < 0.8 * evaluated[(False, "train")], evaluated
+
+
 def test_schedule_warms_up_linearly_then_decays_to_a_tenth() -> None:
     factors = [warmup_exponential_decay_factor(s, 1000, 0.025, 0.1) for s in range(1001)]
     assert factors[0] == pytest.approx(1 / 25) and factors[12] == pytest.approx(12 / 25)
@@ -134,7 +207,7 @@ def _model_with_opaque_ball(reset_near_plane: bool) -> ScalarModel:
     model = small_scalar_model(num_train_data=1, reset_near_plane=reset_near_plane)
     density_at_unit = model.field.density_at_unit
 
-    def ball(unit_positions: torch.Tensor):
+    def ball(unit_positions: torch.Tensor, encoding=None):
         _, geo_features = density_at_unit(unit_positions)
         world = (unit_positions - 0.5) * 4.0  # inverse contraction inside the unit ball
         return torch.where(torch.linalg.vector_norm(world, dim=-1) < 0.04, 1e3, 0.0), geo_features

@@ -134,6 +134,27 @@ class GridLayout:
     hashmap_size: int
 
 
+def _torch_table_gradient(coords: Tensor, grad_out: Tensor, layout: GridLayout, table_shape: torch.Size) -> Tensor:
+    """Table gradient ``[rows, F]`` of the encoding at ``coords`` ``[3, N]`` (sanitised) for ``grad_out`` ``[N, L * F]``."""
+    num_features = table_shape[1]
+    grad_table = torch.zeros(table_shape, dtype=grad_out.dtype, device=grad_out.device)
+    # [L, N, F]: contiguous per-level slices make the products below several times faster.
+    grad_levels = grad_out.reshape(grad_out.shape[0], -1, num_features).transpose(0, 1).contiguous()
+    for level, res in enumerate(layout.resolutions):
+        start, stop = layout.level_offsets[level], layout.level_offsets[level + 1]
+        rows, weights = level_corners(coords, res, layout.hashmap_size)
+        contributions = weights.unsqueeze(-1) * grad_levels[level].unsqueeze(0)  # [8, N, F]
+        grad_table[start:stop].index_add_(0, rows.view(-1), contributions.view(-1, num_features))
+    return grad_table
+
+
+def _cpp_table_gradient(positions: Tensor, grad_out: Tensor, layout: GridLayout, num_features: int) -> Tensor:
+    """Table gradient ``[rows, F]`` of the C++ encoding at ``positions`` ``[N, 3]`` for ``grad_out`` ``[N, L * F]``."""
+    return _cpp.require_extension().backward(
+        grad_out.contiguous(), positions, list(layout.level_offsets), list(layout.resolutions), layout.hashmap_size, num_features
+    )
+
+
 class _TorchHashGrid(torch.autograd.Function):
     """Vectorised torch hash-grid encoding with a single-gradient-table backward (any device)."""
 
@@ -162,17 +183,7 @@ class _TorchHashGrid(torch.autograd.Function):
         if not ctx.needs_input_grad[1]:
             return None, None, None
         (coords,) = ctx.saved_tensors
-        layout: GridLayout = ctx.layout
-        num_features = ctx.table_shape[1]
-        grad_table = torch.zeros(ctx.table_shape, dtype=grad_out.dtype, device=grad_out.device)
-        # [L, N, F]: contiguous per-level slices make the products below several times faster.
-        grad_levels = grad_out.reshape(grad_out.shape[0], -1, num_features).transpose(0, 1).contiguous()
-        for level, res in enumerate(layout.resolutions):
-            start, stop = layout.level_offsets[level], layout.level_offsets[level + 1]
-            rows, weights = level_corners(coords, res, layout.hashmap_size)
-            contributions = weights.unsqueeze(-1) * grad_levels[level].unsqueeze(0)  # [8, N, F]
-            grad_table[start:stop].index_add_(0, rows.view(-1), contributions.view(-1, num_features))
-        return None, grad_table, None
+        return None, _torch_table_gradient(coords, grad_out, ctx.layout, ctx.table_shape), None
 
 
 class _CppHashGrid(torch.autograd.Function):
@@ -196,16 +207,35 @@ class _CppHashGrid(torch.autograd.Function):
         if not ctx.needs_input_grad[1]:
             return None, None, None
         (positions,) = ctx.saved_tensors
-        layout: GridLayout = ctx.layout
-        grad_table = _cpp.require_extension().backward(
-            grad_out.contiguous(),
-            positions,
-            list(layout.level_offsets),
-            list(layout.resolutions),
-            layout.hashmap_size,
-            ctx.num_features,
-        )
-        return None, grad_table, None
+        return None, _cpp_table_gradient(positions, grad_out, ctx.layout, ctx.num_features), None
+
+
+class _PrecomputedEncoding(torch.autograd.Function):
+    """An encoding computed earlier without autograd, joined to the table's graph: the forward returns
+    it unchanged (no table lookups), the backward is the chosen implementation's table gradient.
+
+    The features are linear in the table, so their gradient needs only the positions: a training
+    step that has already encoded its samples in a no-grad pass does not encode them again."""
+
+    @staticmethod
+    def forward(ctx: Any, positions: Tensor, table: Tensor, layout: GridLayout, encoding: Tensor, use_cpp: bool) -> Tensor:
+        """``positions`` ``[N, 3]`` float32, ``encoding`` ``[N, L * F]`` (their encoding by ``table``) -> ``encoding``."""
+        ctx.save_for_backward(positions if use_cpp else sanitise_positions(positions).t().contiguous())
+        ctx.layout, ctx.use_cpp, ctx.table_shape = layout, use_cpp, table.shape
+        return encoding.view_as(encoding)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx: Any, grad_out: Tensor) -> tuple[None, Tensor | None, None, None, None]:
+        """``grad_out`` ``[N, L * F]`` -> gradient of the table ``[rows, F]`` (none for positions or the encoding)."""
+        if not ctx.needs_input_grad[1]:
+            return None, None, None, None, None
+        (saved,) = ctx.saved_tensors
+        if ctx.use_cpp:
+            grad_table = _cpp_table_gradient(saved, grad_out, ctx.layout, ctx.table_shape[1])
+        else:
+            grad_table = _torch_table_gradient(saved, grad_out, ctx.layout, ctx.table_shape)
+        return None, grad_table, None, None, None
 
 
 def hash_encoding_torch(positions: Tensor, table: Tensor, layout: GridLayout) -> Tensor:
@@ -319,6 +349,24 @@ class HashGridEncoding(nn.Module):
         else:
             out = hash_encoding_torch(flat, self.table, self.layout)
         return out.view(*positions.shape[:-1], self.get_out_dim())
+
+    def with_table_gradient(self, positions: Tensor, encoding: Tensor) -> Tensor:
+        """``encoding``, the output of :meth:`forward` for ``positions`` computed earlier without
+        autograd, as if :meth:`forward` had just computed it: the table gets the same gradient.
+
+        Args:
+            positions: ``[N, 3]`` float32 coordinates the encoding was computed at.
+            encoding: ``[N, L * F]`` float32, ``self(positions)`` with the table unchanged since.
+
+        Returns:
+            ``[N, L * F]``: the values of ``encoding``, differentiable with respect to the table.
+        """
+        if positions.ndim != 2 or positions.shape[-1] != 3 or encoding.shape != (positions.shape[0], self.get_out_dim()):
+            raise ValueError(
+                f"positions [N, 3] and encoding [N, {self.get_out_dim()}] expected, got {tuple(positions.shape)} and {tuple(encoding.shape)}"
+            )
+        flat = positions.to(torch.float32).contiguous()
+        return _PrecomputedEncoding.apply(flat, self.table, self.layout, encoding, self._use_cpp(flat.device))
 
     def extra_repr(self) -> str:
         return (

@@ -261,19 +261,28 @@ class ScalarField(nn.Module):
         """bfloat16 autocast for the decoder on CPU when configured; a no-op context otherwise."""
         return torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.cpu_bfloat16 and like.device.type == "cpu")
 
-    def density_at_unit(self, unit_positions: Tensor) -> tuple[Tensor, Tensor]:
+    def density_at_unit(self, unit_positions: Tensor, encoding: Optional[Tensor] = None) -> tuple[Tensor, Tensor]:
         """[N, 3] contracted unit-cube positions -> ([N] float32 density, [N, geo_feat_dim] features).
 
         When ``unit_positions`` requires grad (and grad mode is on), the density is differentiable
         with respect to the positions (for surface normals): the encoding then runs through
         :func:`encode_with_position_gradients` and the decoder in float32 (no autocast). Otherwise
         the fast kernels (positions get no gradient) and the configured decoder precision are used.
+
+        Args:
+            unit_positions: [N, 3] contracted unit-cube positions.
+            encoding: [N, L * F] ``self.encoder(unit_positions)`` computed earlier without autograd
+                (a training step's no-grad pass): it is not computed again, and the table still
+                gets its gradient (:meth:`HashGridEncoding.with_table_gradient`).
         """
         if unit_positions.requires_grad and torch.is_grad_enabled():
             features = encode_with_position_gradients(self.encoder, unit_positions)
             with torch.autocast(device_type=features.device.type, enabled=False):
                 return self.decoder.density(features)
-        features = self.encoder(unit_positions)
+        if encoding is not None:
+            features = self.encoder.with_table_gradient(unit_positions, encoding)
+        else:
+            features = self.encoder(unit_positions)
         with self._decoder_autocast(features):
             return self.decoder.density(features)
 

@@ -7,6 +7,7 @@ cell of a ``[G, G, G]`` grid over the *contracted* scene cube ``[0, 1]^3`` (see
 
 from __future__ import annotations
 
+import math
 from typing import Callable
 
 import torch
@@ -110,6 +111,7 @@ class OccupancyGrid(nn.Module):
         # (checkpoints of older runs load): a resumed grid keeps its saved cells through a warm-up.
         self.register_buffer("seeded", torch.zeros((), dtype=torch.bool), persistent=False)
         self._warming_up = True
+        self._neighbourhood: Tensor | None = None  # see neighbourhood_estimates
 
     @property
     def warming_up(self) -> bool:
@@ -138,6 +140,7 @@ class OccupancyGrid(nn.Module):
         if densities.shape != self.density_ema.shape:
             raise ValueError(f"seed densities must have shape {list(self.density_ema.shape)}, got {list(densities.shape)}")
         self.density_ema.copy_(torch.nan_to_num(densities.float(), nan=0.0, posinf=1e6).clamp_min(0.0))
+        self._neighbourhood = None
         opacities = 1.0 - torch.exp(-(self.density_ema * self.cell_sizes).clamp(max=50.0))
         self.occupied.copy_(opacities > min(self.opacity_threshold, float(opacities.mean())))
         self.seeded.fill_(True)
@@ -156,6 +159,51 @@ class OccupancyGrid(nn.Module):
     def is_occupied(self, unit_positions: Tensor) -> Tensor:
         """[M, 3] contracted unit-cube positions -> [M] bool."""
         return self.occupied[self.cell_indices(unit_positions)]
+
+    def worth_evaluating(self, unit_positions: Tensor, deltas: Tensor, alpha_threshold: float) -> Tensor:
+        """[M] bool: samples in occupied cells whose opacity over their own interval, from their cell's
+        density estimate, reaches ``alpha_threshold``.
+
+        A cell is occupied by its opacity over the cell's size; a sample is rendered only when its
+        opacity over its interval (often half a cell or less) exceeds ``alpha_threshold``. Occupied
+        cells of faint haze hold many samples that would be evaluated only to be dropped: this test
+        drops them first. The estimate is the largest density seen in the cell and its 6 face
+        neighbours (:meth:`neighbourhood_estimates`): a cell's own estimate comes from a few random
+        points and can miss a surface that only grazes it, its neighbour inside the surface does not.
+        Cells never evaluated (infinite estimate) and NaN or infinite intervals are always worth
+        evaluating.
+
+        Args:
+            unit_positions: [M, 3] contracted unit-cube positions.
+            deltas: [M] interval lengths in world units (the unit of the density estimates).
+            alpha_threshold: opacity below which a sample is not worth evaluating.
+        """
+        cells = self.cell_indices(unit_positions)
+        estimates = self.neighbourhood_estimates()[cells]
+        # NaN (inf * 0: a cell never evaluated, or a NaN interval) counts as opaque: evaluated
+        optical_depth = torch.nan_to_num(estimates * deltas, nan=float("inf"))
+        # 1 - exp(-d) >= a  <=>  d >= -log(1 - a)
+        worth = optical_depth >= -math.log1p(-min(max(alpha_threshold, 0.0), 1.0 - 1e-7))
+        return self.occupied[cells] & worth
+
+    def neighbourhood_estimates(self) -> Tensor:
+        """[G^3] the largest density estimate of each cell and its 6 face neighbours (cached until
+        the estimates change: :meth:`update`, :meth:`seed`, loading a state)."""
+        if self._neighbourhood is None or self._neighbourhood.device != self.density_ema.device:
+            g = self.resolution
+            grid = self.density_ema.reshape(g, g, g)
+            largest = grid.clone()
+            for axis in range(3):  # the 6 face neighbours (no wrap-around: edge cells have fewer)
+                ahead = grid.narrow(axis, 1, g - 1)
+                behind = grid.narrow(axis, 0, g - 1)
+                largest.narrow(axis, 0, g - 1).copy_(torch.maximum(largest.narrow(axis, 0, g - 1), ahead))
+                largest.narrow(axis, 1, g - 1).copy_(torch.maximum(largest.narrow(axis, 1, g - 1), behind))
+            self._neighbourhood = largest.reshape(-1)
+        return self._neighbourhood
+
+    def _load_from_state_dict(self, *args, **kwargs) -> None:  # type: ignore[no-untyped-def]
+        self._neighbourhood = None
+        super()._load_from_state_dict(*args, **kwargs)
 
     @property
     def pruning(self) -> bool:
@@ -192,6 +240,7 @@ class OccupancyGrid(nn.Module):
         points = RESTART_POINTS_PER_CELL if restart else 1
         positions = (coords[None] + torch.rand((points, *coords.shape), device=device)) / g
         densities = torch.nan_to_num(density_fn(positions.reshape(-1, 3)).reshape(points, -1).float(), nan=0.0, posinf=1e6).amax(0)
+        self._neighbourhood = None
         if restart:
             self.density_ema[cells] = densities
         else:

@@ -4,7 +4,9 @@ Rendering path (per ray batch, flat tensors, no nerfstudio RaySamples on the hot
 
 1. ``S`` intervals per ray, evenly spaced in Mip-NeRF 360's linear/disparity spacing (fewer,
    ``warmup_samples_per_ray``, for training rays while the occupancy grid warms up).
-2. Samples in empty cells of the :class:`OccupancyGrid` are dropped.
+2. Samples in empty cells of the :class:`OccupancyGrid` are dropped, and so are (once the grid
+   has warmed up) samples that the grid's density estimates around their cell make more
+   transparent than ``alpha_threshold`` over their interval.
 3. A no-grad density pass over the remaining samples finds where each ray's transmittance has
    fallen below ``transmittance_threshold``; those occluded samples are dropped too, and so are
    samples more transparent than ``alpha_threshold`` once the grid has warmed up.
@@ -121,6 +123,11 @@ class ScalarModelConfig(ModelConfig):
     """Once the occupancy grid marks cells empty (after its warm-up), samples whose opacity in the
     no-grad density pass is below this are not evaluated with gradients either (nerfacc's
     alpha_thre; 0 disables it). Skipped samples are not rendered, in training or evaluation."""
+    grid_alpha_skip: bool = True
+    """Under the same conditions, samples whose opacity over their interval, from the largest
+    density estimate of their occupancy cell and the 6 cells beside it, is below ``alpha_threshold``
+    are not evaluated at all (:meth:`OccupancyGrid.worth_evaluating`): the faint haze that keeps a
+    cell occupied no longer costs a field evaluation per sample."""
     distortion_loss_mult: float = 0.002
     """Weight of Mip-NeRF 360's distortion loss (0 disables it)."""
     background_color: Literal["random", "grey"] = "random"
@@ -321,8 +328,8 @@ class ScalarModel(NormalsOutput, Model):
         deltas = t_ends - t_starts
 
         if torch.is_grad_enabled():  # training: the density of the kept samples again, with gradients
-            sample_ids = self._visible_samples(unit_positions, deltas)  # [M] flat indices into R*S
-            density, geo = self.field.density_at_unit(unit_positions[sample_ids])
+            sample_ids, encoding = self._visible_samples(unit_positions, deltas)  # [M] flat indices into R*S, [M, L*F]
+            density, geo = self.field.density_at_unit(unit_positions[sample_ids], encoding=encoding)
         else:  # rendering: one field pass over the occupied samples serves the occlusion test and the colour
             sample_ids, density, geo = self._visible_samples_with_features(unit_positions, deltas)
         ray_ids = torch.div(sample_ids, num_samples, rounding_mode="floor")
@@ -436,13 +443,23 @@ class ScalarModel(NormalsOutput, Model):
         return (positions - self.region_centre.to(positions.dtype)) / self.region_radius
 
     @torch.no_grad()
-    def _visible_samples(self, unit_positions: Tensor, deltas: Tensor) -> Tensor:
-        """Indices [M] (into the flat [R*S] samples) that are in occupied cells and not occluded."""
-        candidate_ids = torch.nonzero(self.occupancy.is_occupied(unit_positions)).squeeze(-1)
-        if candidate_ids.numel() == 0 or self.config.transmittance_threshold <= 0:
-            return candidate_ids
-        density = self._density_no_grad(unit_positions[candidate_ids])
-        return candidate_ids[self._kept_candidates(candidate_ids, density, deltas)]
+    def _visible_samples(self, unit_positions: Tensor, deltas: Tensor) -> Tuple[Tensor, Optional[Tensor]]:
+        """The samples that are in occupied cells and not occluded: ([M] flat indices into the [R*S]
+        samples, [M, L*F] their hash-grid encoding from the no-grad pass, or None when there was no
+        such pass), so that the pass with gradients does not encode them again."""
+        if self.config.transmittance_threshold <= 0:
+            return torch.nonzero(self.occupancy.is_occupied(unit_positions)).squeeze(-1), None
+        candidate_ids = torch.nonzero(self._worth_evaluating(unit_positions, deltas.reshape(-1))).squeeze(-1)
+        if candidate_ids.numel() == 0:
+            return candidate_ids, None
+        candidates = unit_positions[candidate_ids]
+        densities: List[Tensor] = []
+        encodings: List[Tensor] = []
+        for chunk in torch.split(candidates, _CHUNK):
+            encodings.append(self.field.encoder(chunk))
+            densities.append(self.field.density_at_unit(chunk, encoding=encodings[-1])[0].float())
+        keep = self._kept_candidates(candidate_ids, torch.cat(densities), deltas)
+        return candidate_ids[keep], torch.cat(encodings)[keep]
 
     @torch.no_grad()
     def _visible_samples_with_features(self, unit_positions: Tensor, deltas: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
@@ -454,12 +471,12 @@ class ScalarModel(NormalsOutput, Model):
         occupied samples behind a surface are never evaluated (the kept samples and their values are
         those of one pass over every occupied sample)."""
         num_rays, num_samples = deltas.shape
-        occupied = self.occupancy.is_occupied(unit_positions).reshape(num_rays, num_samples)
         threshold = self.config.transmittance_threshold
         if threshold <= 0 or num_rays == 0:
-            candidate_ids = torch.nonzero(occupied.reshape(-1)).squeeze(-1)
+            candidate_ids = torch.nonzero(self.occupancy.is_occupied(unit_positions)).squeeze(-1)
             density, geo = self.field.density_at_unit(unit_positions[candidate_ids])
             return candidate_ids, density, geo
+        occupied = self._worth_evaluating(unit_positions, deltas.reshape(-1)).reshape(num_rays, num_samples)
         log_threshold = math.log(threshold)
         depth_before = deltas.new_zeros(num_rays)  # [R] optical depth in front of the segment
         kept_ids: List[Tensor] = []
@@ -493,6 +510,16 @@ class ScalarModel(NormalsOutput, Model):
             density, geo = self.field.density_at_unit(empty)
             return torch.zeros(0, dtype=torch.long, device=unit_positions.device), density, geo
         return torch.cat(kept_ids), torch.cat(kept_density), torch.cat(kept_geo)
+
+    @torch.no_grad()
+    def _worth_evaluating(self, unit_positions: Tensor, deltas: Tensor) -> Tensor:
+        """[R*S] bool: the samples (unit-cube positions [R*S, 3], world interval lengths [R*S]) the
+        field evaluates: those in occupied cells and, once the grid prunes (as for the rendered
+        samples' ``alpha_threshold``), only those the grid's estimates make opaque enough
+        (``grid_alpha_skip``)."""
+        if self.config.grid_alpha_skip and self.config.alpha_threshold > 0 and self.occupancy.pruning:
+            return self.occupancy.worth_evaluating(unit_positions, deltas, self.config.alpha_threshold)
+        return self.occupancy.is_occupied(unit_positions)
 
     @torch.no_grad()
     def _kept_candidates(self, candidate_ids: Tensor, density: Tensor, deltas: Tensor) -> Tensor:
