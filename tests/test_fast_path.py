@@ -242,14 +242,18 @@ def test_a_training_step_encodes_each_sample_once_with_the_gradients_of_encoding
         outputs["rgb"].square().sum().backward()
         return outputs, model.field.encoder.table.grad.clone(), model.field.decoder.density_mlp[0].weight.grad.clone()
 
+    import scalar_nerfstudio.models.scalar_model as scalar_model_module
+
+    monkeypatch.setattr(scalar_model_module, "_CHUNK", 500)  # the no-grad pass in several chunks
     monkeypatch.setattr(encoder, "forward", counting_forward)
     outputs, table_grad, decoder_grad = gradients()
     kept = int(outputs["samples_per_ray"].sum())
-    assert 0 < kept < sum(encoded) == encoded[0]  # the no-grad pass over the candidates, nothing after it
+    assert len(encoded) > 2 and 0 < kept < sum(encoded)  # the no-grad pass over the candidates, nothing after it
+    assert encoded[:-1] == [500] * (len(encoded) - 1)
     encoded.clear()
     monkeypatch.setattr(encoder, "with_table_gradient", lambda positions, encoding: counting_forward(positions))
     again, table_grad_again, decoder_grad_again = gradients()  # the kept samples encoded a second time
-    assert encoded[-1] == kept and int(again["samples_per_ray"].sum()) == kept
+    assert encoded[-1] == kept and int(again["samples_per_ray"].sum()) == kept  # the kept samples encoded again
     assert table_grad.abs().sum() > 0
     torch.testing.assert_close(table_grad, table_grad_again, atol=1e-7, rtol=0)
     torch.testing.assert_close(decoder_grad, decoder_grad_again, atol=1e-7, rtol=0)

@@ -459,7 +459,8 @@ class ScalarModel(NormalsOutput, Model):
             encodings.append(self.field.encoder(chunk))
             densities.append(self.field.density_at_unit(chunk, encoding=encodings[-1])[0].float())
         keep = self._kept_candidates(candidate_ids, torch.cat(densities), deltas)
-        return candidate_ids[keep], torch.cat(encodings)[keep]
+        kept_encoding = torch.cat([encoding[chunk_keep] for encoding, chunk_keep in zip(encodings, torch.split(keep, _CHUNK))])
+        return candidate_ids[keep], kept_encoding
 
     @torch.no_grad()
     def _visible_samples_with_features(self, unit_positions: Tensor, deltas: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
