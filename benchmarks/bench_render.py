@@ -49,24 +49,27 @@ def main() -> None:
     scores: Dict[Tuple[str, object], List[float]] = {}
     with torch.no_grad():
         for round_index in range(args.rounds + 1):  # round 0 warms up and is not counted
-            for mode, setting in variants:
+            for variant in variants:
+                mode, setting = variant
                 model.set_fusion(mode)
                 _apply_setting(model, setting)
-                scores[(mode, setting)] = []
+                scores[variant] = []
                 for index in range(len(cameras)):
                     start = time.perf_counter()
                     outputs = model.get_outputs_for_camera(cameras[index : index + 1])
                     if round_index > 0:
-                        times[(mode, setting)].append(time.perf_counter() - start)
-                    scores[(mode, setting)].append(float(psnr(outputs["rgb"].clamp(0.0, 1.0), targets[index].to(outputs["rgb"]))))
+                        times[variant].append(time.perf_counter() - start)
+                    scores[variant].append(float(psnr(outputs["rgb"].clamp(0.0, 1.0), targets[index].to(outputs["rgb"]))))
     height, width = int(cameras.height[0]), int(cameras.width[0])
     results = []
     print(f"{args.load_config}: {len(cameras)} eval views of {width}x{height}, {torch.get_num_threads()} threads, {args.rounds} rounds")
-    for mode, setting in variants:
-        label = mode if setting is None else f"{mode} {setting[0]}={setting[1]}"
-        row = {"fusion": mode, "setting": None if setting is None else f"{setting[0]}={setting[1]}",
-               "median_ms": 1000 * statistics.median(times[(mode, setting)]), "min_ms": 1000 * min(times[(mode, setting)]),
-               "psnr": sum(scores[(mode, setting)]) / len(scores[(mode, setting)]), "views": len(cameras), "width": width, "height": height}
+    for variant in variants:
+        mode, setting = variant
+        setting_text = None if setting is None else f"{setting[0]}={setting[1]}"
+        label = mode if setting_text is None else f"{mode} {setting_text}"
+        row = {"fusion": mode, "setting": setting_text,
+               "median_ms": 1000 * statistics.median(times[variant]), "min_ms": 1000 * min(times[variant]),
+               "psnr": sum(scores[variant]) / len(scores[variant]), "views": len(cameras), "width": width, "height": height}
         results.append(row)
         print(f"{label:<12} median {row['median_ms']:.0f} ms / view, fastest {row['min_ms']:.0f} ms, held-out PSNR {row['psnr']:.2f} dB")
     if args.json:

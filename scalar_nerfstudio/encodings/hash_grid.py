@@ -365,6 +365,8 @@ class HashGridEncoding(nn.Module):
             raise ValueError(
                 f"positions [N, 3] and encoding [N, {self.get_out_dim()}] expected, got {tuple(positions.shape)} and {tuple(encoding.shape)}"
             )
+        if not (torch.is_grad_enabled() and self.table.requires_grad):  # nothing to join: no positions to keep
+            return encoding
         flat = positions.to(torch.float32).contiguous()
         return _PrecomputedEncoding.apply(flat, self.table, self.layout, encoding, self._use_cpp(flat.device))
 

@@ -161,8 +161,8 @@ class OccupancyGrid(nn.Module):
         return self.occupied[self.cell_indices(unit_positions)]
 
     def worth_evaluating(self, unit_positions: Tensor, deltas: Tensor, alpha_threshold: float) -> Tensor:
-        """[M] bool: samples in occupied cells whose opacity over their own interval, from their cell's
-        density estimate, reaches ``alpha_threshold``.
+        """[M] bool: samples in occupied cells whose opacity over their own interval, from the density
+        estimates around their cell, reaches ``alpha_threshold``.
 
         A cell is occupied by its opacity over the cell's size; a sample is rendered only when its
         opacity over its interval (often half a cell or less) exceeds ``alpha_threshold``. Occupied
