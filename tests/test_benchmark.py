@@ -51,7 +51,11 @@ def test_quick_benchmark_end_to_end(tmp_path: Path) -> None:
         assert row["render_ms_per_image"] > 0 and row["peak_rss_mib"] > 100 and row["train_rays_per_s"] > 0
     table = (output / "results.md").read_text()
     assert "| SCALAR-NeRF (blocks + global fusion) | global | 32 |" in table
-    # equal wall-clock with K workers: the global phase plus one of the 2 blocks
+    # equal wall-clock with K workers: the global phase plus the slower of the 2 blocks, timed phase by phase
+    block_s = scalar["block_train_s"]
+    assert set(block_s) == {"0", "1"} and all(t > 0 for t in block_s.values())
+    assert sum(block_s.values()) == pytest.approx(scalar["train_s"] - global_phase["train_s"], rel=1e-6)
+    assert scalar["parallel_train_s"] == pytest.approx(global_phase["train_s"] + max(block_s.values()))
     assert scalar["parallel_train_s"] < scalar["train_s"] and "## Equal wall-clock, K blocks on K workers" in table
     for name in ("psnr_vs_time.png", "psnr_vs_render_time.png", "psnr_vs_parameters.png"):
         data = (output / name).read_bytes()
@@ -158,3 +162,74 @@ def test_equal_wall_clock_reads_the_one_model_curve_at_the_parallel_time() -> No
     table = [{"label": "SCALAR", "fusion": "global", "psnr": 21.0, "parallel_train_s": 15.0}, {"label": "NGP", "fusion": "global", "psnr": 20.0}]
     lines = "\n".join(equal_wall_clock({"ngp19": {"curve": curve}}, table, log2_table=14))
     assert "| SCALAR | global | 15 | 21.00 |" in lines and "NGP_14 (one model, 2^14) at the same wall-clock | - | 15 | 19.00 (step 150) |" in lines
+
+
+def test_equal_wall_clock_says_when_a_one_model_run_ended_before_that_time() -> None:
+    """A block variant whose K workers finish after the one-model run's last evaluation is not compared
+    with a value read off past the curve's end: the cell says when the run ended and what it scored."""
+    from scalar_nerfstudio.benchmarking.report import equal_wall_clock
+
+    curve = [{"step": 100, "train_s": 10.0, "psnr": 18.0}, {"step": 200, "train_s": 20.0, "psnr": 20.0}]
+    table = [{"label": "SCALAR", "fusion": "nearest", "psnr": 21.0, "parallel_train_s": 22.0}]
+    lines = "\n".join(equal_wall_clock({"ngp19": {"curve": curve}}, table, log2_table=12))
+    assert "| NGP_12 (one model, 2^12) at the same wall-clock | - | 22 | 20.00: it ended earlier, at 20 s (step 200) |" in lines
+
+
+def test_parallel_budget_gives_every_block_the_steps_one_model_trains_after_the_global_phase(tmp_path: Path) -> None:
+    """``auto-parallel``: ns-train's defaults (automatic K, default fusion first) from the shared global
+    phase, each block trained K x B steps (or --parallel-block-steps), evaluated at its end only; with
+    automatic K = 1 it is the one-model run, planned once."""
+    from scalar_nerfstudio.models.scene_model import ScalarSceneModelConfig
+
+    config = BenchmarkConfig(data=tmp_path, global_steps=600, block_steps=250, num_blocks=4, variants=("auto", "auto-parallel"))
+    with mock.patch("scalar_nerfstudio.benchmarking.variants.auto_k", return_value=8):
+        variants, notes = plan(config)
+    by_name = {v.name: v for v in variants}
+    parallel, auto = by_name["auto-parallel"], by_name["auto"]
+    assert parallel.base == "global" and parallel.eval_every == 0 and auto.eval_every is None
+    assert parallel.fusions[0] == ScalarSceneModelConfig.fusion
+    assert parallel.overrides == {**auto.overrides, "pipeline.block_steps": 1000}  # K B = 4 x 250, not K B / 8
+    assert auto.overrides["pipeline.block_steps"] == 125
+    assert "8 workers" in notes["auto-parallel"] and "8000 block steps" in notes["auto-parallel"]
+    config.variants = ("auto", "auto-parallel", "auto-parallel-fitted")
+    with mock.patch("scalar_nerfstudio.benchmarking.variants.auto_k", return_value=8):
+        fitted = {v.name: v for v in plan(config)[0]}["auto-parallel-fitted"]
+    assert fitted.overrides == {**parallel.overrides, "pipeline.block_init": "fitted"} and fitted.eval_every == 0
+    config.parallel_block_steps = 900
+    with mock.patch("scalar_nerfstudio.benchmarking.variants.auto_k", return_value=8):
+        assert {v.name: v for v in plan(config)[0]}["auto-parallel"].overrides["pipeline.block_steps"] == 900
+    with mock.patch("scalar_nerfstudio.benchmarking.variants.auto_k", return_value=1):
+        assert [v.name for v in plan(config)[0]] == ["global", "ngp19"]
+
+
+def test_a_block_variant_counts_its_global_phase_and_its_slowest_block() -> None:
+    """The global phase's time, steps and curve are prepended; with K workers the wall-clock is the
+    global phase plus the slowest block (blocks differ in images and table), not the blocks' mean."""
+    from scalar_nerfstudio.benchmarking.schedule import with_base_phase
+
+    base = {"train_s": 100.0, "steps": 600, "train_rays_per_s": 2000.0, "curve": [{"step": 600, "train_s": 100.0, "psnr": 17.0}]}
+    blocks = {"train_s": 300.0, "steps": 3000, "train_rays_per_s": 1000.0, "num_blocks": 3,
+              "block_train_s": {"0": 80.0, "1": 120.0, "2": 100.0}, "curve": [{"step": 3000, "train_s": 300.0, "psnr": 19.0}]}
+    result = with_base_phase(blocks, base)
+    assert result["parallel_train_s"] == 220.0 and result["train_s"] == 400.0 and result["steps"] == 3600
+    assert result["curve"] == [base["curve"][0], {"step": 3600, "train_s": 400.0, "psnr": 19.0}]
+    assert result["train_rays_per_s"] == pytest.approx((1000.0 * 300 + 2000.0 * 100) / 400)
+    assert blocks["train_s"] == 300.0  # the runner's result is left as it was
+    without_phase_times = {k: v for k, v in blocks.items() if k != "block_train_s"}
+    assert with_base_phase(without_phase_times, base)["parallel_train_s"] == 200.0
+
+
+def test_a_spec_override_reaches_an_optimizer_setting(tmp_path: Path) -> None:
+    """Overrides walk dataclass attributes and dict keys (the optimizers), and a wrong name is refused
+    with the name in the message instead of being set on nothing."""
+    from scalar_nerfstudio.benchmarking.runner import trainer_config
+
+    spec = {"method": "scalar-nerf", "data": str(tmp_path), "downscale": 1, "output_dir": str(tmp_path / "out"),
+            "overrides": {"optimizers.block_decoder.optimizer.lr": 1e-3}}
+    config = trainer_config(spec)
+    assert config.optimizers["block_decoder"]["optimizer"].lr == 1e-3
+    assert config.optimizers["decoder"]["optimizer"].lr == 1e-3 and config.optimizers["encoder"]["optimizer"].lr == 1e-2
+    with pytest.raises(KeyError, match="block_decodr"):
+        trainer_config({**spec, "overrides": {"optimizers.block_decodr.optimizer.lr": 1e-3}})
+    with pytest.raises(AttributeError, match="lrr"):
+        trainer_config({**spec, "overrides": {"optimizers.block_decoder.optimizer.lrr": 1e-3}})

@@ -50,6 +50,10 @@ LABELS: Dict[Tuple[str, str], str] = {
     ("auto", "global-only"): "its global model alone",
     ("auto-fitted", "nearest"): "the defaults with fitted block tables (--pipeline.block-init fitted)",
     ("auto-fitted", "global-only"): "its global model alone",
+    ("auto-parallel", "nearest"): "the defaults, each block trained as long as NGP_T after the global phase",
+    ("auto-parallel", "global-only"): "its global model alone",
+    ("auto-parallel-fitted", "nearest"): "the same with fitted block tables (--pipeline.block-init fitted)",
+    ("auto-parallel-fitted", "global-only"): "its global model alone",
     ("nerfacto", "global"): "nerfacto (torch), same wall-clock",
 }
 
@@ -118,8 +122,10 @@ def equal_wall_clock(results: Dict[str, Dict[str, Any]], table: List[Dict[str, A
         return []
     names = labels(log2_table)
     lines = ["", "## Equal wall-clock, K blocks on K workers", "",
-             "A block variant's time here is its global phase plus one block's (the K blocks trained at once, as "
-             "`scalar-nerf-train-blocks` does); each one-model run is read off its PSNR curve at that time.", "",
+             "A block variant's time here is its global phase plus its slowest block's (the K blocks trained at once, as "
+             "`scalar-nerf-train-blocks` does); each one-model run is read off its PSNR curve at that time. The equal-steps "
+             "variants do NGP_T's total work, so on K workers they finish early; `auto-parallel` gives each block the "
+             "steps NGP_T trains after the global phase.", "",
              "| model | fusion | wall-clock s | PSNR |", "|---|---|---|---|"]
     times = sorted({round(r["parallel_train_s"], 1) for r in parallel})
     for r in sorted(parallel, key=lambda r: -r["psnr"]):
@@ -128,8 +134,15 @@ def equal_wall_clock(results: Dict[str, Dict[str, Any]], table: List[Dict[str, A
         if name not in results:
             continue
         for seconds in times:
-            found = psnr_at(results[name]["curve"], seconds)
-            cell = f"{found[0]:.2f} (step {found[1]:.0f})" if found else "no evaluation at that time"
+            curve = results[name]["curve"]
+            found = psnr_at(curve, seconds)
+            last = max(curve, key=lambda p: p["train_s"]) if curve else None
+            if found:
+                cell = f"{found[0]:.2f} (step {found[1]:.0f})"
+            elif last is not None and seconds > last["train_s"]:
+                cell = f"{last['psnr']:.2f}: it ended earlier, at {last['train_s']:.0f} s (step {last['step']})"
+            else:
+                cell = "no evaluation at that time"
             lines.append(f"| {names[(name, 'global')]} at the same wall-clock | - | {seconds:.0f} | {cell} |")
     return lines
 
@@ -143,7 +156,9 @@ def markdown(config: BenchmarkConfig, table: List[Dict[str, Any]], notes: Dict[s
         f"Command: `{command}`",
         "",
         f"Machine: {machine}. Budget: {total} steps of {config.rays_per_batch} rays for every SCALAR/NGP variant "
-        f"(global phase G = {config.global_steps}, K = {config.num_blocks} blocks x B = {config.block_steps}); nerfacto: "
+        f"(global phase G = {config.global_steps}, K = {config.num_blocks} blocks x B = {config.block_steps}; "
+        "`auto-parallel`: G, then each of its blocks "
+        f"{config.parallel_block_steps if config.parallel_block_steps is not None else config.num_blocks * config.block_steps} steps); nerfacto: "
         "the wall-clock of `scalar`. Training time excludes evaluation. Eval split: every 8th image. "
         "LPIPS: not computed for nerfacto (its weights need a download); for ours only when the weights are available offline.",
         "",
@@ -172,16 +187,26 @@ def plots(results: Dict[str, Dict[str, Any]], table: List[Dict[str, Any]], outpu
     import matplotlib.pyplot as plt
 
     written = []
-    figure, axes = plt.subplots(figsize=(7, 4.5))
+    figure, axes = plt.subplots(figsize=(8, 5))
+    names = labels(log2_table)
+
+    def curve_label(name: str, result: Dict[str, Any]) -> str:  # a curve is rendered with the variant's first fusion
+        return names.get((name, next(iter(result.get("fusions") or {"global": None}))), name)
+
     for name, result in results.items():
         curve = result["curve"]
         if curve:
             axes.plot([p["train_s"] / 60 for p in curve], [p["psnr"] for p in curve], marker="o", markersize=3,
-                      label=labels(log2_table).get((name, "global"), name), linestyle="--" if name == "global" else "-")
-    axes.set_xlabel("training time (min, evaluation excluded)")
+                      label=curve_label(name, result), linestyle="--" if name == "global" else "-")
+    base_end = (results.get("global") or {}).get("curve", [])[-1:]
+    for name, result in results.items():  # the block variants on K workers: from the global phase's end to their wall-clock
+        if result.get("parallel_train_s") and result["curve"] and base_end:
+            axes.plot([base_end[0]["train_s"] / 60, result["parallel_train_s"] / 60], [base_end[0]["psnr"], result["curve"][-1]["psnr"]],
+                      marker="*", markersize=8, linestyle=":", label=f"{curve_label(name, result)}, K blocks on K workers")
+    axes.set_xlabel("training time (min, evaluation excluded; solid: one machine, dotted: K workers)")
     axes.set_ylabel("eval PSNR (dB)")
     axes.grid(alpha=0.3)
-    axes.legend(fontsize=7)
+    axes.legend(fontsize=6, loc="lower right")
     figure.tight_layout()
     written.append(output_dir / "psnr_vs_time.png")
     figure.savefig(written[-1], dpi=120)

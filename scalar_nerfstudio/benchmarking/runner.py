@@ -44,11 +44,17 @@ def _disable_lpips() -> None:
 
 
 def _set(config: Any, dotted: str, value: Any) -> None:
-    """Set ``config.a.b.c = value`` for ``dotted == "a.b.c"`` (lists become tuples)."""
+    """Set ``config.a.b.c = value`` for ``dotted == "a.b.c"`` (lists become tuples; a dict's part is a
+    key, e.g. ``optimizers.block_decoder.optimizer.lr``)."""
     *parents, name = dotted.split(".")
     target = config
     for part in parents:
-        target = getattr(target, part)
+        if isinstance(target, dict):
+            if part not in target:
+                raise KeyError(f"benchmark override {dotted!r}: no key {part!r} (keys: {sorted(target)})")
+            target = target[part]
+        else:
+            target = getattr(target, part)
     if not hasattr(target, name):
         raise AttributeError(f"benchmark override {dotted!r}: {type(target).__name__} has no attribute {name!r}")
     setattr(target, name, tuple(value) if isinstance(value, list) else value)
@@ -128,8 +134,17 @@ def run(spec: Dict[str, Any]) -> Dict[str, Any]:
     eval_steps = set(range(eval_every, total + 1, eval_every)) if eval_every > 0 else set()
     time_limit = float(spec.get("time_limit_s", 0.0))
     curve: List[Dict[str, float]] = []
+    phase_at = getattr(pipeline, "phase_at", None)
+    block_train_s: Dict[str, float] = {}
+    """Training seconds of each block's phase (the slowest one is the wall-clock of K workers)."""
+    timed_s = 0.0
 
     def after_step(step: int, result, clock: StepClock) -> None:
+        nonlocal timed_s
+        block = phase_at(step).block if phase_at is not None else None
+        if block is not None:
+            block_train_s[str(block)] = block_train_s.get(str(block), 0.0) + clock.busy_s - timed_s
+        timed_s = clock.busy_s
         if time_limit > 0:
             print(f"PROGRESS {min(clock.busy_s, time_limit):.0f} {time_limit:.0f}", flush=True)
         else:
@@ -174,6 +189,7 @@ def run(spec: Dict[str, Any]) -> Dict[str, Any]:
         started = model.started_block_ids()
         result["num_blocks"] = len(started)
         result["block_tables"] = {str(k): int(model.blocks[str(k)].field.config.log2_hashmap_size) for k in started}
+        result["block_train_s"] = block_train_s
     atomic_write_text(Path(spec["result"]), json.dumps(result, indent=2))
     return result
 

@@ -17,7 +17,7 @@ from typing import Any, Dict, List, Tuple
 
 from scalar_nerfstudio.benchmarking.variants import BenchmarkConfig, Variant, plan, use_quick_budgets
 
-__all__ = ["RUNNER_MODULE", "prepare", "run_variant", "run_variants", "variant_spec"]
+__all__ = ["RUNNER_MODULE", "prepare", "run_variant", "run_variants", "variant_spec", "with_base_phase"]
 
 #: The worker module each variant runs in (``python -m RUNNER_MODULE SPEC.json``).
 RUNNER_MODULE = "scalar_nerfstudio.benchmarking.runner"
@@ -52,7 +52,7 @@ def variant_spec(config: BenchmarkConfig, variant: Variant, runs: Path, results:
     overrides = dict(variant.overrides)
     if variant.base is not None:
         overrides["pipeline.global_checkpoint"] = results[variant.base]["checkpoint"]
-    eval_every = config.eval_every
+    eval_every = config.eval_every if variant.eval_every is None else variant.eval_every
     if variant.method == "nerfacto":  # time-limited: evaluated at the end only (its renders take ~1 min)
         eval_every = 0
         overrides["max_num_iterations"] = 10**6
@@ -90,15 +90,26 @@ def run_variant(config: BenchmarkConfig, variant: Variant, runs: Path, results: 
         checkpoints = sorted((Path(result["run_dir"]) / "nerfstudio_models").glob("step-*.ckpt"))
         result["checkpoint"] = str(checkpoints[-1])
     if variant.base is not None:  # the global phase it started from is part of its cost
-        base = results[variant.base]
-        offset_s, offset_steps = base["train_s"], base["steps"]
-        result["curve"] = base["curve"] + [{**p, "train_s": p["train_s"] + offset_s, "step": p["step"] + offset_steps} for p in result["curve"]]
-        rays = result["train_rays_per_s"] * result["train_s"] + base["train_rays_per_s"] * offset_s
-        # K workers train the K blocks at once (scalar-nerf-train-blocks): the global phase, then one block's time.
-        result["parallel_train_s"] = offset_s + result["train_s"] / max(int(result.get("num_blocks") or 1), 1)
-        result["train_s"] += offset_s
-        result["steps"] += offset_steps
-        result["train_rays_per_s"] = rays / max(result["train_s"], 1e-9)
+        result = with_base_phase(result, results[variant.base])
+    return result
+
+
+def with_base_phase(result: Dict[str, Any], base: Dict[str, Any]) -> Dict[str, Any]:
+    """A block variant's ``result`` with the global phase ``base`` it started from counted in: its curve
+    prepended (later points shifted by its time and steps), time, steps and rays/s added, and
+    ``parallel_train_s``, the wall-clock with K workers training the K blocks at once
+    (``scalar-nerf-train-blocks``): the global phase, then the slowest block (from the runner's
+    ``block_train_s``; without it, the blocks' mean)."""
+    result = dict(result)
+    offset_s, offset_steps = base["train_s"], base["steps"]
+    result["curve"] = base["curve"] + [{**p, "train_s": p["train_s"] + offset_s, "step": p["step"] + offset_steps} for p in result["curve"]]
+    rays = result["train_rays_per_s"] * result["train_s"] + base["train_rays_per_s"] * offset_s
+    block_times = list((result.get("block_train_s") or {}).values())
+    one_block = max(block_times) if block_times else result["train_s"] / max(int(result.get("num_blocks") or 1), 1)
+    result["parallel_train_s"] = offset_s + one_block
+    result["train_s"] += offset_s
+    result["steps"] += offset_steps
+    result["train_rays_per_s"] = rays / max(result["train_s"], 1e-9)
     return result
 
 

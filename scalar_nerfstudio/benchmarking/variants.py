@@ -25,13 +25,19 @@ Variants (same scene, same machine, same run; each trains in its own process):
 * ``auto``: ``ns-train scalar-nerf``'s defaults: automatic K, blocks as the defaults start them, the
   default fusion first (K = 1 means one model of ``G + K B`` steps).
 * ``auto-fitted``: ``auto`` with ``--pipeline.block-init fitted`` (when automatic K > 1).
+* ``auto-parallel``: ``auto`` on the equal wall-clock budget with K workers: every block trains
+  ``--parallel-block-steps`` steps (default ``K B``, the steps NGP_T trains after the global phase), as
+  ``scalar-nerf-train-blocks`` trains them at once on K workers. Evaluated at its end only.
+* ``auto-parallel-fitted``: ``auto-parallel`` with ``--pipeline.block-init fitted``.
 * ``nerfacto``: nerfstudio's nerfacto, torch implementation, for the wall-clock SCALAR-NeRF took.
   Its LPIPS needs downloaded AlexNet weights, so it is not computed for nerfacto.
 
 Equal budgets: every SCALAR/NGP variant trains ``G + K B`` steps of the same ray batch; nerfacto
 trains for the same wall-clock as ``scalar`` (set when the schedule gets to it). The report also
 compares at equal wall-clock with K workers: a block variant's time with its blocks trained in
-parallel (``G``'s time + one block's) against the NGP curves at that time.
+parallel (``G``'s time + its slowest block's) against the NGP curves at that time. The equal-steps
+variants do the same total work as NGP_T, so on K workers they finish early; ``auto-parallel`` is the
+budget where the K workers buy K times the block steps in NGP_T's wall-clock.
 """
 
 from __future__ import annotations
@@ -43,7 +49,7 @@ from typing import Any, Dict, List, Optional, Tuple
 __all__ = ["VARIANTS", "BenchmarkConfig", "Variant", "auto_k", "plan", "use_quick_budgets"]
 
 VARIANTS: Tuple[str, ...] = (
-    "ngp19", "ngp21", "scalar", "scalar-init-global", "scalar-fitted", "scalar-wo-sd", "scalar-wo-ft", "scalar-s1.0", "scalar-autocap", "auto", "auto-fitted", "nerfacto",
+    "ngp19", "ngp21", "scalar", "scalar-init-global", "scalar-fitted", "scalar-wo-sd", "scalar-wo-ft", "scalar-s1.0", "scalar-autocap", "auto", "auto-fitted", "auto-parallel", "auto-parallel-fitted", "nerfacto",
 )
 
 
@@ -63,6 +69,9 @@ class BenchmarkConfig:
     """B: steps of each block."""
     num_blocks: int = 4
     """K of the fixed-K variants."""
+    parallel_block_steps: Optional[int] = None
+    """Steps of each block in ``auto-parallel`` (equal wall-clock with K workers); default K x B, the steps
+    NGP_T trains after the global phase."""
     log2_table: int = 19
     """T: log2 table size of NGP_T, of the global model and of every fixed-table block; NGP_{T+2} has 4x."""
     rays_per_batch: int = 2048
@@ -88,6 +97,8 @@ class Variant:
     base: Optional[str] = None
     """Variant whose trained global model this one starts from (its time and curve are prepended)."""
     time_limit_s: float = 0.0
+    eval_every: Optional[int] = None
+    """Evaluate every this many steps (None: the benchmark's --eval-every; 0: at the end only)."""
 
 
 def use_quick_budgets(config: BenchmarkConfig) -> None:
@@ -161,7 +172,7 @@ def plan(config: BenchmarkConfig) -> Tuple[List[Variant], Dict[str, str]]:
             out.append(Variant(name, "scalar-nerf", {**paper, "pipeline.aabb_scale": [1.0, 1.0, 1.0]}, base="global"))
         elif name == "scalar-autocap":
             out.append(Variant(name, "scalar-nerf", {**blocks, "pipeline.block_init": "fresh"}, base="global"))
-        elif name in ("auto", "auto-fitted"):
+        elif name in ("auto", "auto-fitted", "auto-parallel", "auto-parallel-fitted"):
             from scalar_nerfstudio.models.scene_model import ScalarSceneModelConfig
 
             default_fusion = ScalarSceneModelConfig.fusion
@@ -170,6 +181,14 @@ def plan(config: BenchmarkConfig) -> Tuple[List[Variant], Dict[str, str]]:
                 notes[name] = f"automatic K = 1 on this scene: one 2^{log2_19} model of {total} steps, the same configuration as ngp19"
                 if "ngp19" not in wanted and not any(v.name == "ngp19" for v in out):
                     out.append(Variant("ngp19", "scalar-nerf", single))
+            elif name in ("auto-parallel", "auto-parallel-fitted"):
+                steps = config.parallel_block_steps if config.parallel_block_steps is not None else k * b
+                notes[name] = (f"automatic K = {chosen}, {steps} steps per block ({chosen * steps} block steps in all), "
+                               f"automatic block tables: the equal wall-clock budget with {chosen} workers")
+                parallel = {**blocks, "pipeline.num_blocks": None, "pipeline.block_steps": steps}
+                if name == "auto-parallel-fitted":
+                    parallel["pipeline.block_init"] = "fitted"
+                out.append(Variant(name, "scalar-nerf", parallel, [default_fusion, "global-only"], base="global", eval_every=0))
             else:
                 notes[name] = f"automatic K = {chosen}, {k * b // chosen} steps per block, automatic block tables"
                 automatic = {**blocks, "pipeline.num_blocks": None, "pipeline.block_steps": k * b // chosen}
