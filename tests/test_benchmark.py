@@ -200,6 +200,9 @@ def test_parallel_budget_gives_every_block_the_steps_one_model_trains_after_the_
         assert {v.name: v for v in plan(config)[0]}["auto-parallel"].overrides["pipeline.block_steps"] == 900
     with mock.patch("scalar_nerfstudio.benchmarking.variants.auto_k", return_value=1):
         assert [v.name for v in plan(config)[0]] == ["global", "ngp19"]
+    config.parallel_block_steps = 0
+    with pytest.raises(SystemExit, match="--parallel-block-steps 0"):
+        plan(config)
 
 
 def test_a_block_variant_counts_its_global_phase_and_its_slowest_block() -> None:

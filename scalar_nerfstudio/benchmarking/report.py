@@ -150,15 +150,17 @@ def equal_wall_clock(results: Dict[str, Dict[str, Any]], table: List[Dict[str, A
 def markdown(config: BenchmarkConfig, table: List[Dict[str, Any]], notes: Dict[str, str], command: str, machine: str,
              results: Optional[Dict[str, Dict[str, Any]]] = None) -> str:
     total = config.global_steps + config.num_blocks * config.block_steps
+    parallel_budget = ""
+    if any(name.startswith("auto-parallel") for name in (results or {})):
+        steps = config.parallel_block_steps if config.parallel_block_steps is not None else config.num_blocks * config.block_steps
+        parallel_budget = f"; `auto-parallel`: G, then each of its blocks {steps} steps"
     lines = [
         f"# Speed against error: {config.data.name if config.data else 'synthetic'} (downscale {config.downscale})",
         "",
         f"Command: `{command}`",
         "",
         f"Machine: {machine}. Budget: {total} steps of {config.rays_per_batch} rays for every SCALAR/NGP variant "
-        f"(global phase G = {config.global_steps}, K = {config.num_blocks} blocks x B = {config.block_steps}; "
-        "`auto-parallel`: G, then each of its blocks "
-        f"{config.parallel_block_steps if config.parallel_block_steps is not None else config.num_blocks * config.block_steps} steps); nerfacto: "
+        f"(global phase G = {config.global_steps}, K = {config.num_blocks} blocks x B = {config.block_steps}{parallel_budget}); nerfacto: "
         "the wall-clock of `scalar`. Training time excludes evaluation. Eval split: every 8th image. "
         "LPIPS: not computed for nerfacto (its weights need a download); for ours only when the weights are available offline.",
         "",

@@ -144,6 +144,8 @@ def plan(config: BenchmarkConfig) -> Tuple[List[Variant], Dict[str, str]]:
     paper = {**blocks, **fixed_tables, "pipeline.block_init": "fresh"}  # the paper's blocks: empty tables of their own
     notes: Dict[str, str] = {}
     wanted = list(config.variants)
+    if config.parallel_block_steps is not None and config.parallel_block_steps < 1:
+        raise SystemExit(f"scalar-nerf-benchmark: --parallel-block-steps {config.parallel_block_steps}: each block needs at least 1 step")
     unknown = [v for v in wanted if v not in VARIANTS]
     if unknown:
         raise SystemExit(f"scalar-nerf-benchmark: unknown variant(s) {unknown}; choose from {list(VARIANTS)}")
