@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
 
 from scalar_nerfstudio.atomic_io import atomic_write_text
-from scalar_nerfstudio.benchmarking.variants import BenchmarkConfig
+from scalar_nerfstudio.benchmarking.variants import BenchmarkConfig, parallel_block_steps
 
 __all__ = [
     "LABELS", "describe_machine", "equal_wall_clock", "labels", "markdown", "on_pareto_front", "plots", "psnr_at",
@@ -152,8 +152,7 @@ def markdown(config: BenchmarkConfig, table: List[Dict[str, Any]], notes: Dict[s
     total = config.global_steps + config.num_blocks * config.block_steps
     parallel_budget = ""
     if any(name.startswith("auto-parallel") for name in (results or {})):
-        steps = config.parallel_block_steps if config.parallel_block_steps is not None else config.num_blocks * config.block_steps
-        parallel_budget = f"; `auto-parallel`: G, then each of its blocks {steps} steps"
+        parallel_budget = f"; `auto-parallel`: G, then each of its blocks {parallel_block_steps(config)} steps"
     lines = [
         f"# Speed against error: {config.data.name if config.data else 'synthetic'} (downscale {config.downscale})",
         "",

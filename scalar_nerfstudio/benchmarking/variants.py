@@ -46,7 +46,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
 
-__all__ = ["VARIANTS", "BenchmarkConfig", "Variant", "auto_k", "plan", "use_quick_budgets"]
+__all__ = ["VARIANTS", "BenchmarkConfig", "Variant", "auto_k", "parallel_block_steps", "plan", "use_quick_budgets"]
 
 VARIANTS: Tuple[str, ...] = (
     "ngp19", "ngp21", "scalar", "scalar-init-global", "scalar-fitted", "scalar-wo-sd", "scalar-wo-ft", "scalar-s1.0", "scalar-autocap", "auto", "auto-fitted", "auto-parallel", "auto-parallel-fitted", "nerfacto",
@@ -106,6 +106,12 @@ def use_quick_budgets(config: BenchmarkConfig) -> None:
     batches, tables of 2^14."""
     config.downscale, config.global_steps, config.block_steps, config.num_blocks = 1, 20, 6, 2
     config.rays_per_batch, config.eval_every, config.log2_table = 512, 10, 14
+
+
+def parallel_block_steps(config: BenchmarkConfig) -> int:
+    """Steps of each block in the ``auto-parallel`` variants: ``--parallel-block-steps``, else K x B (the
+    steps NGP_T trains after the global phase)."""
+    return config.parallel_block_steps if config.parallel_block_steps is not None else config.num_blocks * config.block_steps
 
 
 def _tables(config: BenchmarkConfig) -> Tuple[int, int, Dict[str, Any]]:
@@ -183,21 +189,18 @@ def plan(config: BenchmarkConfig) -> Tuple[List[Variant], Dict[str, str]]:
                 notes[name] = f"automatic K = 1 on this scene: one 2^{log2_19} model of {total} steps, the same configuration as ngp19"
                 if "ngp19" not in wanted and not any(v.name == "ngp19" for v in out):
                     out.append(Variant("ngp19", "scalar-nerf", single))
-            elif name in ("auto-parallel", "auto-parallel-fitted"):
-                steps = config.parallel_block_steps if config.parallel_block_steps is not None else k * b
-                notes[name] = (f"automatic K = {chosen}, {steps} steps per block ({chosen * steps} block steps in all), "
-                               f"automatic block tables: the equal wall-clock budget with {chosen} workers")
-                parallel = {**blocks, "pipeline.num_blocks": None, "pipeline.block_steps": steps}
-                if name == "auto-parallel-fitted":
-                    parallel["pipeline.block_init"] = "fitted"
-                out.append(Variant(name, "scalar-nerf", parallel, [default_fusion, "global-only"], base="global", eval_every=0))
             else:
-                notes[name] = f"automatic K = {chosen}, {k * b // chosen} steps per block, automatic block tables"
-                automatic = {**blocks, "pipeline.num_blocks": None, "pipeline.block_steps": k * b // chosen}
-                if name == "auto":
-                    out.append(Variant(name, "scalar-nerf", automatic, [default_fusion, "global", "global-only"], base="global"))
-                else:
-                    out.append(Variant(name, "scalar-nerf", {**automatic, "pipeline.block_init": "fitted"}, [default_fusion, "global-only"], base="global"))
+                parallel = name.startswith("auto-parallel")
+                steps = parallel_block_steps(config) if parallel else k * b // chosen
+                notes[name] = f"automatic K = {chosen}, {steps} steps per block, automatic block tables"
+                if parallel:
+                    notes[name] = (f"automatic K = {chosen}, {steps} steps per block ({chosen * steps} block steps in all), "
+                                   f"automatic block tables: the equal wall-clock budget with {chosen} workers")
+                automatic = {**blocks, "pipeline.num_blocks": None, "pipeline.block_steps": steps}
+                if name.endswith("fitted"):
+                    automatic["pipeline.block_init"] = "fitted"
+                fusions = [default_fusion, "global", "global-only"] if name == "auto" else [default_fusion, "global-only"]
+                out.append(Variant(name, "scalar-nerf", automatic, fusions, base="global", eval_every=0 if parallel else None))
         elif name == "nerfacto":
             overrides: Dict[str, Any] = {"pipeline.datamanager.train_num_rays_per_batch": config.rays_per_batch}
             if config.quick:
