@@ -236,3 +236,22 @@ def test_a_spec_override_reaches_an_optimizer_setting(tmp_path: Path) -> None:
         trainer_config({**spec, "overrides": {"optimizers.block_decodr.optimizer.lr": 1e-3}})
     with pytest.raises(AttributeError, match="lrr"):
         trainer_config({**spec, "overrides": {"optimizers.block_decoder.optimizer.lrr": 1e-3}})
+
+
+def test_bad_benchmark_options_are_refused_before_anything_is_written(tmp_path: Path) -> None:
+    """An unknown variant, a parallel budget of no steps or a missing scene folder end in a one-line
+    error naming the option, and no output folder is made."""
+    from scalar_nerfstudio.benchmarking.schedule import prepare
+
+    output = tmp_path / "bench"
+    scene = tmp_path / "scene"
+    scene.mkdir()
+    for config, message in (
+        (BenchmarkConfig(data=scene, output_dir=output, variants=("ngp18",)), "unknown variant"),
+        (BenchmarkConfig(data=scene, output_dir=output, parallel_block_steps=-3), "--parallel-block-steps -3"),
+        (BenchmarkConfig(data=tmp_path / "missing", output_dir=output), "is not a scene folder"),
+        (BenchmarkConfig(output_dir=output), "is not a scene folder"),
+    ):
+        with pytest.raises(SystemExit, match=message):
+            prepare(config)
+        assert not output.exists()

@@ -15,7 +15,7 @@ import sys
 from pathlib import Path
 from typing import Any, Dict, List, Tuple
 
-from scalar_nerfstudio.benchmarking.variants import BenchmarkConfig, Variant, plan, use_quick_budgets
+from scalar_nerfstudio.benchmarking.variants import BenchmarkConfig, Variant, check_options, plan, use_quick_budgets
 
 __all__ = ["RUNNER_MODULE", "prepare", "run_variant", "run_variants", "variant_spec", "with_base_phase"]
 
@@ -34,14 +34,16 @@ def _quick_scene(output_dir: Path) -> Path:
 
 def prepare(config: BenchmarkConfig) -> Tuple[List[Variant], Dict[str, str]]:
     """Make ``config.output_dir`` (and ``runs/`` in it), the synthetic scene and budgets of ``--quick``,
-    check the scene folder; the planned variants and notes (see :func:`.variants.plan`)."""
+    check the scene folder; the planned variants and notes (see :func:`.variants.plan`). Bad options and
+    a missing scene folder are refused before anything is written."""
+    check_options(config)
+    if (config.data is not None or not config.quick) and (config.data is None or not Path(config.data).is_dir()):
+        raise SystemExit(f"scalar-nerf-benchmark: --data {config.data} is not a scene folder (or use --quick)")
     output_dir = config.output_dir
     output_dir.mkdir(parents=True, exist_ok=True)
     if config.quick:
         config.data = config.data or _quick_scene(output_dir)
         use_quick_budgets(config)
-    if config.data is None or not Path(config.data).is_dir():
-        raise SystemExit(f"scalar-nerf-benchmark: --data {config.data} is not a scene folder (or use --quick)")
     variants, notes = plan(config)
     (output_dir / "runs").mkdir(exist_ok=True)
     return variants, notes

@@ -46,7 +46,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
 
-__all__ = ["VARIANTS", "BenchmarkConfig", "Variant", "auto_k", "parallel_block_steps", "plan", "use_quick_budgets"]
+__all__ = ["VARIANTS", "BenchmarkConfig", "Variant", "auto_k", "check_options", "parallel_block_steps", "plan", "use_quick_budgets"]
 
 VARIANTS: Tuple[str, ...] = (
     "ngp19", "ngp21", "scalar", "scalar-init-global", "scalar-fitted", "scalar-wo-sd", "scalar-wo-ft", "scalar-s1.0", "scalar-autocap", "auto", "auto-fitted", "auto-parallel", "auto-parallel-fitted", "nerfacto",
@@ -108,6 +108,16 @@ def use_quick_budgets(config: BenchmarkConfig) -> None:
     config.rays_per_batch, config.eval_every, config.log2_table = 512, 10, 14
 
 
+def check_options(config: BenchmarkConfig) -> None:
+    """Refuse, with the option named, variants that do not exist and a parallel budget of no steps (before
+    anything is written)."""
+    if config.parallel_block_steps is not None and config.parallel_block_steps < 1:
+        raise SystemExit(f"scalar-nerf-benchmark: --parallel-block-steps {config.parallel_block_steps}: each block needs at least 1 step")
+    unknown = [v for v in config.variants if v not in VARIANTS]
+    if unknown:
+        raise SystemExit(f"scalar-nerf-benchmark: unknown variant(s) {unknown}; choose from {list(VARIANTS)}")
+
+
 def parallel_block_steps(config: BenchmarkConfig) -> int:
     """Steps of each block in the ``auto-parallel`` variants: ``--parallel-block-steps``, else K x B (the
     steps NGP_T trains after the global phase)."""
@@ -150,11 +160,7 @@ def plan(config: BenchmarkConfig) -> Tuple[List[Variant], Dict[str, str]]:
     paper = {**blocks, **fixed_tables, "pipeline.block_init": "fresh"}  # the paper's blocks: empty tables of their own
     notes: Dict[str, str] = {}
     wanted = list(config.variants)
-    if config.parallel_block_steps is not None and config.parallel_block_steps < 1:
-        raise SystemExit(f"scalar-nerf-benchmark: --parallel-block-steps {config.parallel_block_steps}: each block needs at least 1 step")
-    unknown = [v for v in wanted if v not in VARIANTS]
-    if unknown:
-        raise SystemExit(f"scalar-nerf-benchmark: unknown variant(s) {unknown}; choose from {list(VARIANTS)}")
+    check_options(config)
     out: List[Variant] = []
     if any(v.startswith(("scalar", "auto")) or v == "nerfacto" for v in wanted):
         out.append(Variant("global", "scalar-nerf", {**common, "pipeline.num_blocks": k, "pipeline.train_blocks": False, "pipeline.global_steps": g}))
