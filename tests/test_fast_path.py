@@ -244,11 +244,12 @@ def test_a_training_step_encodes_each_sample_once_with_the_gradients_of_encoding
 
     import scalar_nerfstudio.models.scalar_model as scalar_model_module
 
-    monkeypatch.setattr(scalar_model_module, "RENDER_SEGMENTS", 4)  # the no-grad pass in 4 segments along the rays
+    monkeypatch.setattr(scalar_model_module, "_CHUNK", 500)  # the no-grad pass in several chunks
     monkeypatch.setattr(encoder, "forward", counting_forward)
     outputs, table_grad, decoder_grad = gradients()
     kept = int(outputs["samples_per_ray"].sum())
-    assert 1 <= len(encoded) <= 4 and 0 < kept < sum(encoded)  # the no-grad pass over the candidates, nothing after it
+    assert len(encoded) > 2 and 0 < kept < sum(encoded)  # the no-grad pass over the candidates, nothing after it
+    assert encoded[:-1] == [500] * (len(encoded) - 1)
     encoded.clear()
     monkeypatch.setattr(encoder, "with_table_gradient", lambda positions, encoding: counting_forward(positions))
     again, table_grad_again, decoder_grad_again = gradients()  # the kept samples encoded a second time
@@ -256,50 +257,3 @@ def test_a_training_step_encodes_each_sample_once_with_the_gradients_of_encoding
     assert table_grad.abs().sum() > 0
     torch.testing.assert_close(table_grad, table_grad_again, atol=1e-7, rtol=0)
     torch.testing.assert_close(decoder_grad, decoder_grad_again, atol=1e-7, rtol=0)
-
-
-@pytest.mark.parametrize("opacity", [0.3, 3.0])
-def test_a_training_step_goes_front_to_back_with_the_one_pass_samples_and_gradients(opacity: float, monkeypatch: pytest.MonkeyPatch) -> None:
-    """The no-grad pass of a training step evaluates the rays front to back in segments: behind an
-    opaque surface nothing is evaluated, and the kept samples, the image and the gradients are those
-    of one pass over every occupied sample."""
-    import scalar_nerfstudio.models.scalar_model as scalar_model_module
-
-    torch.manual_seed(0)
-    model = small_scalar_model(num_samples_per_ray=32, occupancy_warmup_steps=0, background_color="grey")
-    with torch.no_grad():
-        for parameter in model.field.parameters():
-            parameter.copy_(torch.randn(parameter.shape) * (opacity if parameter.ndim == 2 and parameter.shape[1] > 8 else 0.3))
-    model.train()
-    model.update_occupancy(0)
-    generator = torch.Generator().manual_seed(0)
-    rays = ray_bundle(torch.rand(300, 3, generator=generator) * 0.4 - 0.2,
-                      torch.nn.functional.normalize(torch.randn(300, 3, generator=generator), dim=-1))
-    encoder = model.field.encoder
-    encoded = []
-    original_forward = encoder.forward
-
-    def counting_forward(positions: torch.Tensor) -> torch.Tensor:
-        encoded[-1] += positions.reshape(-1, 3).shape[0]
-        return original_forward(positions)
-
-    monkeypatch.setattr(encoder, "forward", counting_forward)
-    results = {}
-    for segments in (1, 4):
-        monkeypatch.setattr(scalar_model_module, "RENDER_SEGMENTS", segments)
-        encoded.append(0)
-        model.zero_grad()
-        torch.manual_seed(1)  # the same jittered samples
-        outputs = model(rays)
-        outputs["rgb"].square().sum().backward()
-        results[segments] = (outputs, encoder.table.grad.clone(), model.field.decoder.colour_mlp[0].weight.grad.clone())
-    (one_pass, table_one, decoder_one), (segmented, table_seg, decoder_seg) = results[1], results[4]
-    assert torch.equal(one_pass["samples_per_ray"], segmented["samples_per_ray"])
-    for key in ("rgb", "depth", "accumulation"):
-        torch.testing.assert_close(segmented[key], one_pass[key], atol=1e-6, rtol=0)
-    assert table_one.abs().sum() > 0
-    torch.testing.assert_close(table_seg, table_one, atol=1e-6, rtol=1e-5)
-    torch.testing.assert_close(decoder_seg, decoder_one, atol=1e-6, rtol=1e-5)
-    assert encoded[1] <= encoded[0], encoded
-    if opacity > 1.0:  # opaque surfaces: the samples behind them are not evaluated
-        assert encoded[1] < 0.8 * encoded[0], encoded

@@ -44,6 +44,7 @@ from scalar_nerfstudio.model_components.rendering import (
     render_normals,
     render_weights,
     safe_normalise,
+    weights_from_alphas,
 )
 from scalar_nerfstudio.model_components.sampling import OccupancyGrid, lin_disp_spacing, sample_intervals
 
@@ -445,53 +446,43 @@ class ScalarModel(NormalsOutput, Model):
     def _visible_samples(self, unit_positions: Tensor, deltas: Tensor) -> Tuple[Tensor, Optional[Tensor]]:
         """The samples that are in occupied cells and not occluded: ([M] flat indices into the [R*S]
         samples, [M, L*F] their hash-grid encoding from the no-grad pass, or None when there was no
-        such pass), so that the pass with gradients does not encode them again. The no-grad pass
-        goes front to back (:meth:`_front_to_back`): samples behind a ray's surface are not evaluated."""
+        such pass), so that the pass with gradients does not encode them again."""
         if self.config.transmittance_threshold <= 0:
             return torch.nonzero(self.occupancy.is_occupied(unit_positions)).squeeze(-1), None
-        sample_ids, _, _, encoding = self._front_to_back(unit_positions, deltas, keep_encoding=True)
-        return sample_ids, encoding
+        candidate_ids = torch.nonzero(self._worth_evaluating(unit_positions, deltas.reshape(-1))).squeeze(-1)
+        if candidate_ids.numel() == 0:
+            return candidate_ids, None
+        candidates = unit_positions[candidate_ids]
+        densities: List[Tensor] = []
+        encodings: List[Tensor] = []
+        for chunk in torch.split(candidates, _CHUNK):
+            encodings.append(self.field.encoder(chunk))
+            densities.append(self.field.density_at_unit(chunk, encoding=encodings[-1])[0].float())
+        keep = self._kept_candidates(candidate_ids, torch.cat(densities), deltas)
+        kept_encoding = torch.cat([encoding[chunk_keep] for encoding, chunk_keep in zip(encodings, torch.split(keep, _CHUNK))])
+        return candidate_ids[keep], kept_encoding
 
     @torch.no_grad()
     def _visible_samples_with_features(self, unit_positions: Tensor, deltas: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
         """:meth:`_visible_samples` without gradients, keeping what the field computed on the way:
-        ([M] flat sample indices, [M] density, [M, F] geometry features)."""
-        if self.config.transmittance_threshold <= 0 or deltas.shape[0] == 0:
+        ([M] flat sample indices, [M] density, [M, F] geometry features).
+
+        The samples are taken front to back in :data:`RENDER_SEGMENTS` segments along the rays: a
+        segment evaluates only the rays whose transmittance is still above the threshold, so the
+        occupied samples behind a surface are never evaluated (the kept samples and their values are
+        those of one pass over every occupied sample)."""
+        num_rays, num_samples = deltas.shape
+        threshold = self.config.transmittance_threshold
+        if threshold <= 0 or num_rays == 0:
             candidate_ids = torch.nonzero(self.occupancy.is_occupied(unit_positions)).squeeze(-1)
             density, geo = self.field.density_at_unit(unit_positions[candidate_ids])
             return candidate_ids, density, geo
-        sample_ids, density, geo, _ = self._front_to_back(unit_positions, deltas, keep_encoding=False)
-        return sample_ids, density, geo
-
-    @torch.no_grad()
-    def _front_to_back(
-        self, unit_positions: Tensor, deltas: Tensor, keep_encoding: bool
-    ) -> Tuple[Tensor, Tensor, Tensor, Optional[Tensor]]:
-        """The samples worth evaluating (:meth:`_worth_evaluating`) that light reaches, evaluated
-        without gradients front to back in :data:`RENDER_SEGMENTS` segments along the rays: a segment
-        evaluates only the rays whose transmittance is still above the threshold, so the occupied
-        samples behind a surface are never evaluated. The kept samples and their values are those of
-        one pass over every occupied sample.
-
-        Args:
-            unit_positions: [R*S, 3] contracted unit-cube positions of the samples.
-            deltas: [R, S] interval lengths in world units.
-            keep_encoding: also return the kept samples' hash-grid encoding (for a training step's
-                pass with gradients, :meth:`ScalarField.density_at_unit`'s ``encoding``).
-
-        Returns:
-            ([M] flat sample indices, [M] density, [M, F] geometry features, [M, L*F] encoding or None).
-        """
-        num_rays, num_samples = deltas.shape
-        threshold = self.config.transmittance_threshold
         occupied = self._worth_evaluating(unit_positions, deltas.reshape(-1)).reshape(num_rays, num_samples)
         log_threshold = math.log(threshold)
-        alpha_test = self.config.alpha_threshold > 0 and self.occupancy.pruning
         depth_before = deltas.new_zeros(num_rays)  # [R] optical depth in front of the segment
         kept_ids: List[Tensor] = []
         kept_density: List[Tensor] = []
         kept_geo: List[Tensor] = []
-        kept_encoding: List[Tensor] = []
         bounds = torch.linspace(0, num_samples, min(RENDER_SEGMENTS, num_samples) + 1).round().long().tolist()
         for start, end in zip(bounds[:-1], bounds[1:]):
             alive = -depth_before > log_threshold  # [R] light still reaches the segment
@@ -501,9 +492,7 @@ class ScalarModel(NormalsOutput, Model):
                     break
                 continue
             ids = rays * num_samples + start + offsets
-            positions = unit_positions[ids]
-            encoding = self.field.encoder(positions) if keep_encoding else None
-            density, geo = self.field.density_at_unit(positions, encoding=encoding)
+            density, geo = self.field.density_at_unit(unit_positions[ids])
             densities = deltas.new_zeros(num_rays, end - start)
             densities[rays, offsets] = density.float()
             alphas = alphas_from_densities(densities, deltas[:, start:end])
@@ -511,21 +500,17 @@ class ScalarModel(NormalsOutput, Model):
             accumulated = torch.cumsum(optical, dim=-1) + depth_before[:, None]
             before = torch.cat([depth_before[:, None], accumulated[:, :-1]], dim=-1)  # [R, seg] in front of each sample
             keep = torch.exp(-before[rays, offsets]) > threshold
-            if alpha_test:
+            if self.config.alpha_threshold > 0 and self.occupancy.pruning:
                 keep &= alphas[rays, offsets] > self.config.alpha_threshold
             kept_ids.append(ids[keep])
             kept_density.append(density[keep])
             kept_geo.append(geo[keep])
-            if encoding is not None:
-                kept_encoding.append(encoding[keep])
             depth_before = accumulated[:, -1]
         if not kept_ids:
             empty = unit_positions[:0]
-            encoding = self.field.encoder(empty) if keep_encoding else None
-            density, geo = self.field.density_at_unit(empty, encoding=encoding)
-            return torch.zeros(0, dtype=torch.long, device=unit_positions.device), density, geo, encoding
-        encoding_out = torch.cat(kept_encoding) if keep_encoding else None
-        return torch.cat(kept_ids), torch.cat(kept_density), torch.cat(kept_geo), encoding_out
+            density, geo = self.field.density_at_unit(empty)
+            return torch.zeros(0, dtype=torch.long, device=unit_positions.device), density, geo
+        return torch.cat(kept_ids), torch.cat(kept_density), torch.cat(kept_geo)
 
     @torch.no_grad()
     def _worth_evaluating(self, unit_positions: Tensor, deltas: Tensor) -> Tensor:
@@ -536,6 +521,21 @@ class ScalarModel(NormalsOutput, Model):
         if self.config.grid_alpha_skip and self.config.alpha_threshold > 0 and self.occupancy.pruning:
             return self.occupancy.worth_evaluating(unit_positions, deltas, self.config.alpha_threshold)
         return self.occupancy.is_occupied(unit_positions)
+
+    @torch.no_grad()
+    def _kept_candidates(self, candidate_ids: Tensor, density: Tensor, deltas: Tensor) -> Tensor:
+        """[C] bool over the occupied samples ``candidate_ids`` (flat indices into [R*S]) with ``density``
+        [C]: True where the transmittance before the sample is above the threshold and (once the grid
+        prunes) its opacity above ``alpha_threshold``."""
+        num_rays, num_samples = deltas.shape
+        densities = torch.zeros(num_rays * num_samples, device=deltas.device)
+        densities[candidate_ids] = density.float()
+        alphas = alphas_from_densities(densities.reshape(num_rays, num_samples), deltas)
+        _, transmittance = weights_from_alphas(alphas)
+        keep = transmittance.reshape(-1)[candidate_ids] > self.config.transmittance_threshold
+        if self.config.alpha_threshold > 0 and self.occupancy.pruning:
+            keep &= alphas.reshape(-1)[candidate_ids] > self.config.alpha_threshold
+        return keep
 
     def _background(self, num_rays: int, like: Tensor) -> Tensor:
         """[R, 3] background colour: random while training (if configured), grey otherwise."""
