@@ -37,7 +37,8 @@ def prepare(config: BenchmarkConfig) -> Tuple[List[Variant], Dict[str, str]]:
     check the scene folder; the planned variants and notes (see :func:`.variants.plan`). Bad options and
     a missing scene folder are refused before anything is written."""
     check_options(config)
-    if (config.data is not None or not config.quick) and (config.data is None or not Path(config.data).is_dir()):
+    makes_its_own_scene = config.quick and config.data is None
+    if not makes_its_own_scene and (config.data is None or not Path(config.data).is_dir()):
         raise SystemExit(f"scalar-nerf-benchmark: --data {config.data} is not a scene folder (or use --quick)")
     output_dir = config.output_dir
     output_dir.mkdir(parents=True, exist_ok=True)

@@ -198,10 +198,9 @@ def plan(config: BenchmarkConfig) -> Tuple[List[Variant], Dict[str, str]]:
             else:
                 parallel = name.startswith("auto-parallel")
                 steps = parallel_block_steps(config) if parallel else k * b // chosen
-                notes[name] = f"automatic K = {chosen}, {steps} steps per block, automatic block tables"
-                if parallel:
-                    notes[name] = (f"automatic K = {chosen}, {steps} steps per block ({chosen * steps} block steps in all), "
-                                   f"automatic block tables: the equal wall-clock budget with {chosen} workers")
+                notes[name] = (f"automatic K = {chosen}, {steps} steps per block ({chosen * steps} block steps in all), "
+                               f"automatic block tables: the equal wall-clock budget with {chosen} workers") if parallel else (
+                    f"automatic K = {chosen}, {steps} steps per block, automatic block tables")
                 automatic = {**blocks, "pipeline.num_blocks": None, "pipeline.block_steps": steps}
                 if name.endswith("fitted"):
                     automatic["pipeline.block_init"] = "fitted"

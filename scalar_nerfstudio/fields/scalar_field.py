@@ -209,8 +209,9 @@ class ScalarFieldConfig(InstantiateConfig):
     """Hash-grid kernel: "auto" uses the C++ CPU kernel on CPU when it builds, torch otherwise / on CUDA."""
     hidden_dim: int = 64
     """Width of the decoder's hidden layers. The paper's decoder is 128 wide (Sec. 4); 64 (Instant-NGP's
-    width) trained castle-P30 1.33x faster on the CPU with the same held-out PSNR (22.50 against 22.14
-    dB in one run each, docs/benchmarks.md), so 64 is the default. ``128`` gives the paper's decoder."""
+    width) trains 1.33-1.37x faster on the CPU (castle-P30, fox) with held-out PSNR at least as high at
+    equal wall-clock; at equal steps fox scored 0.91 dB lower (docs/benchmarks.md, "A narrower
+    decoder"). ``128`` gives the paper's decoder."""
     decoder_precision: Literal["auto", "float32", "bfloat16"] = "auto"
     """Matrix products of the decoder on CPU. "auto": bfloat16 where the CPU multiplies bfloat16
     natively (about 2x faster decoder), else float32. Densities, colours, the hash grid and volume
