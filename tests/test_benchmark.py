@@ -125,6 +125,22 @@ def test_table_size_option_sets_every_table(tmp_path: Path) -> None:
     assert by_name["ngp21"].overrides["pipeline.model.field.log2_hashmap_size"] == 16
     assert by_name["scalar"].overrides["pipeline.block_log2_hashmap_size"] == 14
     assert "global-only" in by_name["scalar"].fusions and "surface" in by_name["scalar"].fusions
+    assert all("pipeline.model.field.hidden_dim" not in v.overrides for v in by_name.values())  # the field's default
+
+
+def test_decoder_width_option_reaches_every_variant_of_ours_and_the_report(tmp_path: Path) -> None:
+    """``--decoder-width 128`` (the paper's decoder, what the 2026-11-23 town pages used) is set on the
+    global phase, NGP_T, NGP_{T+2} and the block variants, not on nerfacto; the report states it."""
+    from scalar_nerfstudio.benchmarking.report import decoder_width_used, markdown
+
+    config = BenchmarkConfig(data=tmp_path, decoder_width=128, variants=("ngp19", "ngp21", "scalar", "nerfacto"))
+    by_name = {v.name: v for v in plan(config)[0]}
+    assert {name for name, v in by_name.items() if v.overrides.get("pipeline.model.field.hidden_dim") == 128} == {
+        "global", "ngp19", "ngp21", "scalar"}
+    assert "pipeline.model.field.hidden_dim" not in by_name["nerfacto"].overrides
+    assert decoder_width_used(config) == 128 and decoder_width_used(BenchmarkConfig(data=tmp_path)) == 64
+    assert "decoder 128 wide" in markdown(config, [], {}, "cmd", "2 CPU cores", {}, decoder_width=128)
+    assert "decoder width not recorded" in markdown(config, [], {}, "cmd", "2 CPU cores", {})
 
 
 def test_a_run_renders_with_the_first_fusion_it_reports(tmp_path: Path) -> None:
@@ -249,6 +265,7 @@ def test_bad_benchmark_options_are_refused_before_anything_is_written(tmp_path: 
     for config, message in (
         (BenchmarkConfig(data=scene, output_dir=output, variants=("ngp18",)), "unknown variant"),
         (BenchmarkConfig(data=scene, output_dir=output, parallel_block_steps=-3), "--parallel-block-steps -3"),
+        (BenchmarkConfig(data=scene, output_dir=output, decoder_width=0), "--decoder-width 0"),
         (BenchmarkConfig(data=tmp_path / "missing", output_dir=output), "is not a scene folder"),
         (BenchmarkConfig(output_dir=output), "is not a scene folder"),
     ):

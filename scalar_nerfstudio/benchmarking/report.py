@@ -147,8 +147,17 @@ def equal_wall_clock(results: Dict[str, Dict[str, Any]], table: List[Dict[str, A
     return lines
 
 
+def decoder_width_used(config: BenchmarkConfig) -> int:
+    """The decoder width every SCALAR/NGP variant of a run trains with: ``--decoder-width``, else the field's default."""
+    from scalar_nerfstudio.fields.scalar_field import ScalarFieldConfig
+
+    return config.decoder_width if config.decoder_width is not None else ScalarFieldConfig.hidden_dim
+
+
 def markdown(config: BenchmarkConfig, table: List[Dict[str, Any]], notes: Dict[str, str], command: str, machine: str,
-             results: Optional[Dict[str, Dict[str, Any]]] = None) -> str:
+             results: Optional[Dict[str, Dict[str, Any]]] = None, decoder_width: Optional[int] = None) -> str:
+    """results.md; ``decoder_width``: the width the run's variants trained with (None: a report written
+    before the width was recorded, which says so)."""
     total = config.global_steps + config.num_blocks * config.block_steps
     parallel_budget = ""
     if any(name.startswith("auto-parallel") for name in (results or {})):
@@ -159,7 +168,8 @@ def markdown(config: BenchmarkConfig, table: List[Dict[str, Any]], notes: Dict[s
         f"Command: `{command}`",
         "",
         f"Machine: {machine}. Budget: {total} steps of {config.rays_per_batch} rays for every SCALAR/NGP variant "
-        f"(global phase G = {config.global_steps}, K = {config.num_blocks} blocks x B = {config.block_steps}{parallel_budget}); nerfacto: "
+        f"(global phase G = {config.global_steps}, K = {config.num_blocks} blocks x B = {config.block_steps}{parallel_budget}; "
+        f"decoder {f'{decoder_width} wide' if decoder_width is not None else 'width not recorded'}); nerfacto: "
         "the wall-clock of `scalar`. Training time excludes evaluation. Eval split: every 8th image. "
         "LPIPS: not computed for nerfacto (its weights need a download); for ours only when the weights are available offline.",
         "",
@@ -242,7 +252,8 @@ def describe_machine() -> str:
 def _write(output_dir: Path, config: BenchmarkConfig, report: Dict[str, Any]) -> None:
     """results.json, results.md and the plots of ``report``."""
     atomic_write_text(output_dir / "results.json", json.dumps(report, indent=2))
-    atomic_write_text(output_dir / "results.md", markdown(config, report["rows"], report["notes"], report["command"], report["machine"], report["results"]))
+    atomic_write_text(output_dir / "results.md", markdown(config, report["rows"], report["notes"], report["command"], report["machine"],
+                                                          report["results"], report.get("decoder_width")))
     plots(report["results"], report["rows"], output_dir, config.log2_table)
 
 
@@ -254,6 +265,7 @@ def write_report(config: BenchmarkConfig, results: Dict[str, Dict[str, Any]], no
     report = {
         "command": command, "machine": machine, "config": {k: str(v) if isinstance(v, Path) else v for k, v in asdict(config).items()},
         "notes": notes, "rows": table, "results": results, "wall_clock_s": time.time() - started,
+        "decoder_width": decoder_width_used(config),
     }
     _write(config.output_dir, config, report)
     return report

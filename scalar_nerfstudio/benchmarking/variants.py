@@ -76,6 +76,10 @@ class BenchmarkConfig:
     """T: log2 table size of NGP_T, of the global model and of every fixed-table block; NGP_{T+2} has 4x."""
     rays_per_batch: int = 2048
     """Training rays per step (every variant)."""
+    decoder_width: Optional[int] = None
+    """Width of the decoder's hidden layers in every SCALAR/NGP variant (``pipeline.model.field.hidden_dim``);
+    default: the field's default (64). 128 is the paper's decoder, which the town and castle-P30 pages of
+    2026-11-23 were measured with."""
     eval_every: int = 200
     """Evaluate every this many steps (plus at the end of each variant)."""
     variants: Tuple[str, ...] = VARIANTS
@@ -113,6 +117,8 @@ def check_options(config: BenchmarkConfig) -> None:
     anything is written)."""
     if config.parallel_block_steps is not None and config.parallel_block_steps < 1:
         raise SystemExit(f"scalar-nerf-benchmark: --parallel-block-steps {config.parallel_block_steps}: each block needs at least 1 step")
+    if config.decoder_width is not None and config.decoder_width < 1:
+        raise SystemExit(f"scalar-nerf-benchmark: --decoder-width {config.decoder_width}: a decoder layer needs at least 1 unit")
     unknown = [v for v in config.variants if v not in VARIANTS]
     if unknown:
         raise SystemExit(f"scalar-nerf-benchmark: unknown variant(s) {unknown}; choose from {list(VARIANTS)}")
@@ -126,12 +132,15 @@ def parallel_block_steps(config: BenchmarkConfig) -> int:
 
 def _tables(config: BenchmarkConfig) -> Tuple[int, int, Dict[str, Any]]:
     """(log2 T of NGP_T, of NGP_{T+2}, field/sampling overrides shared by all our variants)."""
+    shared: Dict[str, Any] = {}
     if config.quick:
-        return config.log2_table, config.log2_table + 2, {
+        shared.update({
             "pipeline.model.field.max_resolution": 256, "pipeline.model.num_samples_per_ray": 32,
             "pipeline.model.occupancy_warmup_steps": 8,
-        }
-    return config.log2_table, config.log2_table + 2, {}
+        })
+    if config.decoder_width is not None:
+        shared["pipeline.model.field.hidden_dim"] = config.decoder_width
+    return config.log2_table, config.log2_table + 2, shared
 
 
 def auto_k(config: BenchmarkConfig, log2_t: int) -> int:
