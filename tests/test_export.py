@@ -367,14 +367,14 @@ def test_ns_export_pointcloud_of_a_fused_run_lies_on_the_courtyard(tmp_path: Pat
     centre = scale * (rotation @ ((COURTYARD_MIN + COURTYARD_MAX) / 2.0) + translation)
     exported = subprocess.run(
         [sys.executable, "-m", "nerfstudio.scripts.exporter", "pointcloud", "--load-config", str(run / "config.yml"),
-         "--output-dir", str(tmp_path / "export"), "--num-points", "3000", "--remove-outliers", "False", "--num-rays-per-batch", "8192",
+         "--output-dir", str(tmp_path / "export"), "--num-points", "6000", "--remove-outliers", "False", "--num-rays-per-batch", "8192",
          "--obb-center", *map(str, centre), "--obb-rotation", *map(str, _rpy(rotation)), "--obb-scale", *map(str, scale * (COURTYARD_MAX - COURTYARD_MIN))],
         capture_output=True, text=True, timeout=600,
     )
     assert exported.returncode == 0, exported.stdout[-3000:] + exported.stderr[-3000:]
     cloud = o3d.io.read_point_cloud(str(tmp_path / "export" / "point_cloud.ply"))
     points, normals = np.asarray(cloud.points), np.asarray(cloud.normals)
-    assert len(points) >= 3000 and cloud.has_normals() and normals.shape == points.shape
+    assert len(points) >= 6000 and cloud.has_normals() and normals.shape == points.shape
     assert np.isfinite(normals).all() and np.allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-3)
 
     world_points = (points / scale - translation) @ rotation  # R^T (p' / s - t), as row vectors
@@ -391,9 +391,10 @@ def test_ns_export_pointcloud_of_a_fused_run_lies_on_the_courtyard(tmp_path: Pat
     on_ground = (surface == -1) & (distance < 0.1)
     agreement = np.abs(np.sum(world_normals * surface_normal, axis=1))
     summary += f"{on_ground.sum()} points on the ground, |dot| > 0.7 for {np.mean(agreement[on_ground] > 0.7):.2f} (isotropic: 0.30)"
-    # Measured 0.41-0.52 this session over configurations and runs (0.54-0.69 earlier); a one-minute
-    # run: the density is still noisy. The normals must beat isotropic ones (0.30) by two standard
-    # errors of that fraction over the ground points.
+    # Measured 0.41-0.52 over configurations and runs with the 128-wide decoder (0.54-0.69 earlier),
+    # 0.40 with the 64-wide one over 77 ground points of 3000, 0.43 over 145 of 6000; a one-minute run: the density is still
+    # noisy. The normals must beat isotropic ones (0.30) by two standard errors of that fraction over
+    # the ground points; 6000 exported points (about 150 on the ground) keep that margin near 0.075.
     isotropic = 0.30
     margin = 2.0 * float(np.sqrt(isotropic * (1.0 - isotropic) / max(int(on_ground.sum()), 1)))
     assert on_ground.sum() >= 30 and np.mean(agreement[on_ground] > 0.7) > isotropic + margin, summary
