@@ -500,7 +500,7 @@ class ScalarModel(NormalsOutput, Model):
             accumulated = torch.cumsum(optical, dim=-1) + depth_before[:, None]
             before = torch.cat([depth_before[:, None], accumulated[:, :-1]], dim=-1)  # [R, seg] in front of each sample
             keep = torch.exp(-before[rays, offsets]) > threshold
-            if self.config.alpha_threshold > 0 and self.occupancy.pruning:
+            if self._skips_transparent_samples():
                 keep &= alphas[rays, offsets] > self.config.alpha_threshold
             kept_ids.append(ids[keep])
             kept_density.append(density[keep])
@@ -512,13 +512,18 @@ class ScalarModel(NormalsOutput, Model):
             return torch.zeros(0, dtype=torch.long, device=unit_positions.device), density, geo
         return torch.cat(kept_ids), torch.cat(kept_density), torch.cat(kept_geo)
 
+    def _skips_transparent_samples(self) -> bool:
+        """Whether samples more transparent than ``alpha_threshold`` are dropped now: once the
+        occupancy grid marks cells empty (after its warm-up), unless the threshold is 0."""
+        return self.config.alpha_threshold > 0 and self.occupancy.pruning
+
     @torch.no_grad()
     def _worth_evaluating(self, unit_positions: Tensor, deltas: Tensor) -> Tensor:
         """[R*S] bool: the samples (unit-cube positions [R*S, 3], world interval lengths [R*S]) the
         field evaluates: those in occupied cells and, once the grid prunes (as for the rendered
         samples' ``alpha_threshold``), only those the grid's estimates make opaque enough
         (``grid_alpha_skip``)."""
-        if self.config.grid_alpha_skip and self.config.alpha_threshold > 0 and self.occupancy.pruning:
+        if self.config.grid_alpha_skip and self._skips_transparent_samples():
             return self.occupancy.worth_evaluating(unit_positions, deltas, self.config.alpha_threshold)
         return self.occupancy.is_occupied(unit_positions)
 
@@ -533,7 +538,7 @@ class ScalarModel(NormalsOutput, Model):
         alphas = alphas_from_densities(densities.reshape(num_rays, num_samples), deltas)
         _, transmittance = weights_from_alphas(alphas)
         keep = transmittance.reshape(-1)[candidate_ids] > self.config.transmittance_threshold
-        if self.config.alpha_threshold > 0 and self.occupancy.pruning:
+        if self._skips_transparent_samples():
             keep &= alphas.reshape(-1)[candidate_ids] > self.config.alpha_threshold
         return keep
 
