@@ -100,3 +100,15 @@ def test_a_run_config_from_before_block_init_loads_as_fresh_blocks() -> None:
     assert old.plan_settings().global_max_resolution is None  # per-block capacities, as it was trained
     explicit = yaml.load(yaml.dump(ScalarPipelineConfig(block_init="fresh")), Loader=yaml.Loader)
     assert explicit.effective_block_init() == "fresh"
+
+
+def test_a_run_config_from_before_lr_schedule_loads_as_per_phase() -> None:
+    """The global phase now holds its learning rate when blocks follow; a config.yml written before the
+    option existed has no lr_schedule key, and a resumed run of it keeps the decay it was trained with."""
+    import yaml
+
+    from scalar_nerfstudio.pipeline import ScalarPipelineConfig
+
+    assert ScalarPipelineConfig().effective_lr_schedule() == "restart"
+    old = yaml.load(yaml.dump(ScalarPipelineConfig()).replace("lr_schedule: restart\n", ""), Loader=yaml.Loader)
+    assert "lr_schedule" not in old.__dict__ and old.effective_lr_schedule() == "per-phase"

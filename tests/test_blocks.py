@@ -169,6 +169,33 @@ def test_run_stopped_in_a_block_phase_resumes_there(scene: Path, tmp_path: Path)
     assert latest_checkpoint_step(run / "nerfstudio_models") == 20 + 2 * 8 - 1
 
 
+def _lr_factor(trainer, group: str, step: int) -> float:
+    """The learning-rate multiplier of parameter group ``group`` at global step ``step``."""
+    return float(trainer.optimizers.schedulers[group].lr_lambdas[0](step))
+
+
+@pytest.mark.parametrize("lr_schedule", ["restart", "per-phase"])
+def test_global_phase_holds_its_learning_rate_only_when_blocks_follow(scene: Path, tmp_path: Path, lr_schedule: str) -> None:
+    """restart (default): the global model warms up and keeps its rate to the end of its phase, each
+    block warms up again and decays 10x over its own phase; per-phase: the global phase decays too.
+    A run of one model decays over its whole run either way."""
+    global_steps, block_steps = 20, 8  # tiny_trainer's
+    trainer = _trainer(scene, tmp_path / "blocks", lr_schedule=lr_schedule)
+    groups = [g for g in trainer.optimizers.schedulers if not g.startswith("block")]
+    assert {"encoder", "decoder"} <= set(groups)
+    for group in groups:  # (20 steps are too few to warm up)
+        end_of_global = _lr_factor(trainer, group, global_steps - 1)
+        assert end_of_global == 1.0 if lr_schedule == "restart" else end_of_global < 0.15
+    for block in range(NUM_BLOCKS):
+        start = global_steps + block * block_steps
+        for part in ("encoder", "decoder"):
+            group = f"block{block}.{part}"
+            assert _lr_factor(trainer, group, start) == pytest.approx(1.0)  # too short a phase to warm up
+            assert _lr_factor(trainer, group, start + block_steps) == pytest.approx(0.1)
+    single = _trainer(scene, tmp_path / "single", lr_schedule=lr_schedule, num_blocks=1, train_blocks=False)
+    assert _lr_factor(single, "encoder", global_steps) == pytest.approx(0.1)
+
+
 # ------------------------------------------------------- scalar-nerf-block, in parallel
 
 

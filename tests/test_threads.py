@@ -290,6 +290,9 @@ class _OnePhasePipeline:
     def param_group_phases(self) -> dict:
         return {}
 
+    def param_group_schedules(self) -> dict:
+        return {}
+
     def plan_report(self) -> str:
         return ""
 
