@@ -50,16 +50,6 @@ class Phase:
         return "global" if self.block is None else f"block {self.block}"
 
 
-@dataclass(frozen=True)
-class ScheduleSpan:
-    """The learning-rate schedule of a parameter group (engine/schedulers.py): at its own step 0 at
-    global step ``start_step``, ``num_steps`` long; ``decays`` False holds the rate after the warm-up."""
-
-    start_step: int
-    num_steps: int
-    decays: bool = True
-
-
 LrSchedule = Literal["restart", "per-phase"]
 
 
@@ -420,19 +410,14 @@ class ScalarPipeline(VanillaPipeline):
             templates[group.name] = ("block_decoder" if finetuned else group.part, phase_of_block.get(group.block))
         return templates
 
-    def param_group_schedules(self) -> Dict[str, ScheduleSpan]:
-        """For each optimiser parameter group that trains in a phase: its learning-rate schedule, over
-        that phase (the trainer schedules any other group over the whole run). With ``lr_schedule``
-        restart, the global model's groups hold their rate after the warm-up when blocks follow it, in
-        this run or in scalar-nerf-block runs (K > 1, or K = 1 with train_blocks); each block decays over
-        its phase. One model (automatic K = 1, or K = 1 without blocks) decays over its run."""
+    @property
+    def holds_global_learning_rate(self) -> bool:
+        """With ``lr_schedule`` restart, the global model's groups hold their rate after the warm-up
+        when blocks follow it, in this run or in scalar-nerf-block runs (K > 1, or K = 1 with
+        train_blocks); each block decays over its phase. One model (automatic K = 1, or K = 1 without
+        blocks) decays over its run."""
         blocks_follow = not self.plan.single_model and (self.split.num_blocks > 1 or self.config.train_blocks)
-        holds = self.config.effective_lr_schedule() == "restart" and blocks_follow
-        spans: Dict[str, ScheduleSpan] = {}
-        for group, (_, phase) in self.param_group_phases().items():
-            if phase is not None:
-                spans[group] = ScheduleSpan(phase.start_step, phase.num_steps, decays=not (holds and phase.block is None))
-        return spans
+        return self.config.effective_lr_schedule() == "restart" and blocks_follow
 
 
 def parsed_layout_scale(parsed) -> LayoutScale:

@@ -290,8 +290,7 @@ class _OnePhasePipeline:
     def param_group_phases(self) -> dict:
         return {}
 
-    def param_group_schedules(self) -> dict:
-        return {}
+    holds_global_learning_rate = False
 
     def plan_report(self) -> str:
         return ""

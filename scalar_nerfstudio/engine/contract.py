@@ -33,8 +33,9 @@ class PhasedPipeline(Protocol):
     def param_group_phases(self) -> Dict[str, Tuple[str, Optional[Any]]]:
         """For each optimiser parameter group: (its template key in ``optimizers``, its phase)."""
 
-    def param_group_schedules(self) -> Dict[str, Any]:
-        """For each optimiser parameter group: its learning-rate schedule (``start_step``, ``num_steps``, ``decays``)."""
+    @property
+    def holds_global_learning_rate(self) -> bool:
+        """The global phase's groups keep their learning rate after the warm-up (blocks follow them)."""
 
     def plan_report(self) -> str:
         """The split, automatic K, block capacities and phases, for the training log."""

@@ -165,26 +165,25 @@ class ScalarTrainer(Trainer):
         """One optimiser per parameter group, from the template in ``optimizers`` that fits the group.
 
         A block's groups (``block{k}.encoder`` ...) use the ``encoder`` / ``appearance`` templates and
-        ``block_decoder`` for a fine-tuned decoder; each schedule spans what the pipeline's
-        ``param_group_schedules`` says: the phase its group trains in; the global model's rate is held
-        after its warm-up when blocks follow (``--pipeline.lr-schedule restart``).
+        ``block_decoder`` for a fine-tuned decoder; each schedule spans the phase its group trains in.
+        The global model's rate is held after its warm-up when the pipeline says so
+        (``holds_global_learning_rate``: blocks follow, ``--pipeline.lr-schedule restart``).
         """
         pipeline = self.phased_pipeline
         param_groups = pipeline.get_param_groups()
         phases = pipeline.param_group_phases()
-        spans = pipeline.param_group_schedules()
         config: Dict[str, Any] = {}
         for group in param_groups:
-            template, _ = phases.get(group, (group, None))
+            template, phase = phases.get(group, (group, None))
             if template not in self.config.optimizers:
                 raise KeyError(f"no optimizer settings for parameter group {group!r} (looked for --optimizers.{template})")
             settings = dict(self.config.optimizers[template])
             scheduler = settings.get("scheduler")
             if isinstance(scheduler, WarmupExponentialDecaySchedulerConfig):
-                span = spans.get(group)
-                start, length, decays = (span.start_step, span.num_steps, span.decays) if span is not None else (0, self.config.max_num_iterations, True)
+                start, length = (phase.start_step, phase.num_steps) if phase is not None else (0, self.config.max_num_iterations)
+                held = phase is not None and phase.block is None and pipeline.holds_global_learning_rate
                 settings["scheduler"] = replace(scheduler, start_step=start, max_steps=scheduler.max_steps or max(length, 1),
-                                                final_factor=scheduler.final_factor if decays else 1.0)
+                                                final_factor=1.0 if held else scheduler.final_factor)
             config[group] = settings
         return Optimizers(config, param_groups)
 
