@@ -150,6 +150,7 @@ def _check_model(model: Any) -> None:
     for name in ("num_samples_per_ray", "occupancy_resolution", "occupancy_update_every"):
         _at_least(model, name, 1, prefix=prefix)
     _at_least(model, "warmup_samples_per_ray", 0, " (0: num-samples-per-ray during the warm-up too)", prefix=prefix, optional=True)
+    _at_least(model, "render_occupancy_resolution", 0, " (0: rendering uses the training grid)", prefix=prefix, optional=True)
     _at_least(model, "blocks_per_ray", 0, " (0: every block on every ray)", prefix=prefix, optional=True)
     _at_least(model, "block_fit_steps", 0, " (0: a fitted block keeps its fresh table)", prefix=prefix, optional=True)
     _at_least(model, "block_fit_points", 1, prefix=prefix, optional=True)

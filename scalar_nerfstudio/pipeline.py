@@ -332,6 +332,12 @@ class ScalarPipeline(VanillaPipeline):
         """Keep finished blocks in ``run_dir``'s block_models/ folder and load them from there."""
         self.model.attach_block_store(block_models_dir(run_dir))
 
+    def end_training_of(self, phase: Phase) -> None:
+        """The last step of ``phase`` has run: its model finishes its training (its occupancy grid is
+        re-estimated from the final field, :meth:`ScalarModel.finish_training`). Called for every
+        phase, the run's last one included, before :meth:`finish_phase` and the checkpoint."""
+        self.model.phase_model(phase.block).finish_training()
+
     def finish_phase(self, phase: Phase) -> None:
         """A phase has ended: a block's weights go to their file and leave memory, with its images."""
         if phase.block is None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from typing import List
 
 import pytest
 import torch
@@ -121,6 +122,69 @@ def test_a_seeded_grid_keeps_its_estimates_past_the_warm_up_step() -> None:
 
 
 
+def test_refreshing_the_grid_forgets_the_haze_it_remembers_and_is_deterministic() -> None:
+    """Late in training a cell's estimate is the decaying maximum of what it has seen, so haze the
+    field has since cleared keeps cells occupied; the refresh at the end of training re-estimates
+    every cell from the field as it is (at the cell centres) and marks them again."""
+    haze = lambda unit: torch.full(unit.shape[:1], 100.0)  # noqa: E731
+    grid = OccupancyGrid(resolution=8, update_every=4, warmup_steps=8)
+    grid.update(0, haze)
+    grid.update(8, _sphere_density)  # the restart after the warm-up
+    for step in range(12, 12 + 4 * 16, 4):  # every cell seen hazy again (a quarter per update)
+        grid.update(step, haze)
+    grid.update(12 + 4 * 16, _sphere_density)
+    corner, centre = torch.tensor([[0.02, 0.02, 0.02]]), torch.tensor([[0.5, 0.5, 0.5]])
+    assert grid.is_occupied(corner).item() and grid.occupied_fraction() > 0.9  # the haze is remembered
+    grid.refresh(_sphere_density)
+    assert grid.is_occupied(centre).item() and not grid.is_occupied(corner).item()
+    assert 0.0 < grid.occupied_fraction() < 0.2
+    assert grid.pruning is True
+    fresh = OccupancyGrid(resolution=8, update_every=4, warmup_steps=8)
+    fresh.refresh(_sphere_density)  # a grid never updated: built from the field alone, no warm-up
+    assert not fresh.warming_up and torch.equal(fresh.occupied, grid.occupied)
+    first = (grid.density_ema.clone(), grid.occupied.clone())
+    grid.refresh(_sphere_density)
+    assert torch.equal(grid.density_ema, first[0]) and torch.equal(grid.occupied, first[1])
+    # NaN and infinite densities stay usable estimates
+    grid.refresh(lambda unit: torch.full(unit.shape[:1], float("nan")))
+    assert torch.isfinite(grid.density_ema).all()
+
+
+def test_a_refreshed_grid_keeps_a_thin_surface_that_misses_every_cell_centre() -> None:
+    """A slab thinner than a cell lying between two layers of cell centres: the cells it crosses
+    stay occupied (their estimates are the largest density at their corners) and its samples are
+    worth evaluating; cells away from it are empty."""
+    g = 8
+
+    def slab(unit: torch.Tensor) -> torch.Tensor:  # dense where x is within 0.01 of 3 / 8 (a cell face)
+        return torch.where((unit[:, 0] - 3.0 / g).abs() < 0.01, 1000.0, 0.0)
+
+    grid = OccupancyGrid(resolution=g, neighbourhood_alpha_test=False)
+    grid.refresh(slab)
+    on_slab = torch.tensor([[3.0 / g + 0.005, 0.5, 0.5], [3.0 / g - 0.005, 0.3, 0.7]])
+    away = torch.tensor([[0.5 + 1.0 / g, 0.5, 0.5], [0.05, 0.05, 0.05]])
+    assert grid.is_occupied(on_slab).all() and not grid.is_occupied(away).any()
+    assert grid.worth_evaluating(on_slab, torch.full((2,), 0.01), alpha_threshold=0.01).all()
+    assert slab((torch.arange(g, dtype=torch.float32)[:, None].expand(g, 3) + 0.5) / g).max() == 0  # no centre sees it
+
+
+def test_the_grids_cached_answers_follow_its_cells() -> None:
+    """``pruning`` and the neighbourhood estimates are cached; in-place writes and swapped storage
+    (a block's tensors installed from its file) renew them."""
+    grid = OccupancyGrid(resolution=4, update_every=1, warmup_steps=0)
+    assert grid.pruning is False
+    grid.occupied[0] = False
+    assert grid.pruning is True
+    grid.occupied.data = torch.ones(4**3, dtype=torch.bool)
+    assert grid.pruning is False
+    grid.density_ema.copy_(torch.zeros(4**3))
+    assert grid.neighbourhood_estimates().max().item() == 0.0
+    grid.density_ema[5] = 3.0
+    assert grid.neighbourhood_estimates().max().item() == 3.0
+    grid.density_ema.data = torch.full((4**3,), 7.0)
+    assert grid.neighbourhood_estimates().min().item() == 7.0
+
+
 def test_a_sample_is_worth_evaluating_when_its_cells_estimate_makes_it_opaque_enough() -> None:
     """Samples of an occupied cell are evaluated only when the largest density estimate around the
     cell, over the sample's own interval, reaches the opacity threshold; cells never evaluated, NaN
@@ -191,6 +255,46 @@ def test_skipping_hazy_samples_by_the_grid_renders_the_same_image_with_fewer_eva
         torch.testing.assert_close(images[True][key], images[False][key], atol=1e-3, rtol=0)
     assert evaluated[True] < 0.8 * evaluated[False], evaluated
     assert evaluated[(True, "train")] < 0.8 * evaluated[(False, "train")], evaluated
+
+
+def test_a_model_that_finishes_training_renders_the_same_image_with_fewer_evaluations() -> None:
+    """A field that was hazy earlier in training and is now an opaque ball: the grid still marks
+    the haze's cells; once the model finishes its training (the grid re-estimated from the final
+    field), rendering skips them, and the image is the same."""
+    model = small_scalar_model(num_train_data=1, num_samples_per_ray=64, occupancy_warmup_steps=0)
+    density_at_unit = model.field.density_at_unit
+    counts: List[int] = []
+    hazy = [True]
+
+    def field(unit_positions: torch.Tensor, encoding=None):
+        counts.append(unit_positions.shape[0])
+        _, geo_features = density_at_unit(unit_positions)
+        world = (unit_positions - 0.5) * 4.0  # inverse contraction inside the unit ball
+        inside = torch.linalg.vector_norm(world - torch.tensor([0.5, 0.0, 0.0]), dim=-1) < 0.2
+        haze = torch.linalg.vector_norm(world, dim=-1) < 0.9
+        return torch.where(inside, 200.0, torch.where(haze & torch.tensor(hazy[0]), 5.0, 0.0)), geo_features
+
+    model.field.density_at_unit = field
+    for step in range(0, 16 * 8, 16):  # the hazy field seen in every cell
+        model.update_occupancy(step)
+    hazy[0] = False  # the haze has cleared; the grid's decaying estimates still remember it
+    model.update_occupancy(16 * 8)
+    generator = torch.Generator().manual_seed(0)
+    directions = torch.nn.functional.normalize(torch.cat([torch.ones(128, 1), (torch.rand(128, 2, generator=generator) - 0.5) * 0.5], dim=-1), dim=-1)
+    rays = ray_bundle(torch.zeros(128, 3), directions)
+    model.eval()
+    images, evaluated = [], []
+    for finish in (False, True):
+        if finish:
+            model.finish_training()
+        counts.clear()
+        with torch.no_grad():
+            images.append(model(rays))
+        evaluated.append(sum(counts))
+    assert images[1]["accumulation"].min() > 0.9  # every ray hits the ball
+    for key in ("rgb", "depth", "accumulation"):
+        torch.testing.assert_close(images[1][key], images[0][key], atol=1e-4, rtol=0)
+    assert evaluated[1] < 0.7 * evaluated[0], evaluated
 
 
 def test_schedule_warms_up_linearly_then_decays_to_a_tenth() -> None:

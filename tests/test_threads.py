@@ -295,6 +295,9 @@ class _OnePhasePipeline:
     def plan_report(self) -> str:
         return ""
 
+    def end_training_of(self, phase: object) -> None:
+        pass
+
     def finish_phase(self, phase: object) -> None:
         pass
 
@@ -331,3 +334,26 @@ def test_trainer_updates_the_governor_once_per_step(monkeypatch: pytest.MonkeyPa
     trainer._total_steps = 100
     assert [trainer.train_iteration(step) for step in range(3)] == [0, 1, 2]
     assert events == ["update", "step 0", "update", "step 1", "update", "step 2"]
+
+
+def test_the_trainer_ends_a_models_training_at_the_last_step_of_its_phase(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """The run's last phase ends too (its model's occupancy grid is refreshed before the final
+    checkpoint), once, at its last step; only phases before the last are finished (stored)."""
+    from nerfstudio.engine.trainer import Trainer
+
+    trainer = _trainer(tmp_path, adapt=False)
+    events: List[str] = []
+    pipeline = _OnePhasePipeline()
+    pipeline.end_training_of = lambda phase: events.append(f"end {phase.end_step}")  # type: ignore[method-assign]
+    pipeline.finish_phase = lambda phase: events.append("finish")  # type: ignore[method-assign]
+    monkeypatch.setattr(Trainer, "train_iteration", lambda self, step: step)
+    trainer.pipeline = pipeline  # type: ignore[assignment]
+    trainer._total_steps = 100
+    for step in range(95, 100):
+        trainer.train_iteration(step)
+    assert events == ["end 100"]
+    events.clear()
+    trainer._total_steps = 60  # the run's length (max_num_iterations) ends the phase early
+    for step in range(55, 60):
+        trainer.train_iteration(step)
+    assert events == ["end 100"]

@@ -24,8 +24,13 @@ class PhasedPipeline(Protocol):
     def phase_at(self, step: int) -> Any:
         """The phase (``start_step``, ``num_steps``, ``end_step``) that trains at ``step``."""
 
+    def end_training_of(self, phase: Any) -> None:
+        """Called once when ``phase`` has trained its last step (the run's last phase included),
+        before :meth:`finish_phase` and the checkpoint: its model finishes its training."""
+
     def finish_phase(self, phase: Any) -> None:
-        """Called once when ``phase`` has trained its last step, before the checkpoint written then."""
+        """Called once when a phase other than the run's last has trained its last step, after
+        :meth:`end_training_of`, before the checkpoint written then."""
 
     def attach_run_dir(self, run_dir: Any) -> None:
         """The run folder the pipeline keeps its per-block files in."""

@@ -198,6 +198,8 @@ class ScalarTrainer(Trainer):
             path, psnr = write_preview(self.pipeline, self.base_dir, step)
             CONSOLE.print(f"step {step + 1}: preview (render | ground truth, eval view 0, {psnr:.2f} dB) written to {path}")
         phase = self.phased_pipeline.phase_at(step)
+        if step + 1 == min(phase.end_step, self._total_steps):  # a run may end before its phase's planned end
+            self.phased_pipeline.end_training_of(phase)  # its render grid from the final field
         if step + 1 == phase.end_step and step + 1 < self._total_steps:
             self.release_finished_optimizer_state(step + 1)
             self.phased_pipeline.finish_phase(phase)  # a block's weights to their own file, out of memory

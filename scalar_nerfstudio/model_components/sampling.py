@@ -64,6 +64,25 @@ def flat_cell_indices(unit_positions: Tensor, resolution: int) -> Tensor:
     return cells[:, 0] * (g * g) + cells[:, 1] * g + cells[:, 2]
 
 
+def face_neighbourhood_max(values: Tensor, resolution: int) -> Tensor:
+    """[G^3] per-cell values (flat cell order) -> [G^3] the largest value of each cell and its 6 face
+    neighbours (no wrap-around: edge cells have fewer)."""
+    g = resolution
+    grid = values.reshape(g, g, g)
+    largest = grid.clone()
+    for axis in range(3):
+        ahead = grid.narrow(axis, 1, g - 1)
+        behind = grid.narrow(axis, 0, g - 1)
+        largest.narrow(axis, 0, g - 1).copy_(torch.maximum(largest.narrow(axis, 0, g - 1), ahead))
+        largest.narrow(axis, 1, g - 1).copy_(torch.maximum(largest.narrow(axis, 1, g - 1), behind))
+    return largest.reshape(-1)
+
+
+def _tensor_key(tensor: Tensor) -> tuple[int, int, torch.device]:
+    """What identifies a tensor's values for a cache: its storage, its in-place version, its device."""
+    return (tensor.data_ptr(), tensor._version, tensor.device)
+
+
 #: Jittered points per cell of the update that follows the warm-up (which starts the estimates afresh).
 RESTART_POINTS_PER_CELL = 4
 
@@ -85,6 +104,10 @@ class OccupancyGrid(nn.Module):
             (as nerfacc's grid does; the mean keeps a grid of a barely trained field from emptying).
         world_scale: world length of one unit of the region frame the grid's cube contracts
             (a block's radius), so cell sizes and the opacity threshold are in world units.
+        neighbourhood_alpha_test: :meth:`worth_evaluating` judges a sample by the largest estimate
+            of its cell and the 6 cells beside it (estimates from a few random points can miss a
+            surface that grazes a cell); False: by its cell's own estimate, for a grid built by
+            :meth:`refresh`, whose estimates are already the largest density at the cell's corners.
     """
 
     def __init__(
@@ -95,8 +118,10 @@ class OccupancyGrid(nn.Module):
         ema_decay: float = 0.95,
         opacity_threshold: float = 0.01,
         world_scale: float = 1.0,
+        neighbourhood_alpha_test: bool = True,
     ) -> None:
         super().__init__()
+        self.neighbourhood_alpha_test = neighbourhood_alpha_test
         self.resolution = resolution
         self.update_every = update_every
         self.warmup_steps = warmup_steps
@@ -111,7 +136,9 @@ class OccupancyGrid(nn.Module):
         # (checkpoints of older runs load): a resumed grid keeps its saved cells through a warm-up.
         self.register_buffer("seeded", torch.zeros((), dtype=torch.bool), persistent=False)
         self._warming_up = True
-        self._neighbourhood: Tensor | None = None  # see neighbourhood_estimates
+        # caches keyed by the tensors' identity and version (in-place writes and swapped storage renew them)
+        self._neighbourhood: tuple[tuple[int, int, torch.device], Tensor] | None = None  # see neighbourhood_estimates
+        self._pruning: tuple[tuple[int, int, torch.device], bool] | None = None  # see pruning
 
     @property
     def warming_up(self) -> bool:
@@ -145,6 +172,28 @@ class OccupancyGrid(nn.Module):
         self.occupied.copy_(opacities > min(self.opacity_threshold, float(opacities.mean())))
         self.seeded.fill_(True)
 
+    @torch.no_grad()
+    def refresh(self, density_fn: Callable[[Tensor], Tensor], chunk_cells: int = 1 << 18) -> None:
+        """Estimate every cell from the field as it is now, replacing the estimates (not their
+        maximum with the old ones), and mark the cells: how a model's render grid is built when its
+        training ends (:meth:`ScalarModel.finish_training`), without the haze a training grid
+        remembers from earlier steps. A cell's estimate is the largest density at its 8 corners
+        (the field is evaluated once at each of the ``(G + 1)^3`` corners of the grid): a surface
+        that crosses a cell crosses it between corners, where the field's density falls off over
+        about a cell of the finest levels. Deterministic; the grid counts as seeded afterwards (no
+        warm-up).
+
+        Args:
+            density_fn: [M, 3] contracted unit-cube positions -> [M] density (1 / world unit).
+            chunk_cells: corners evaluated per call of ``density_fn``.
+        """
+        g = self.resolution
+        corners = torch.empty((g + 1) ** 3, device=self.density_ema.device)
+        for ids in torch.split(torch.arange((g + 1) ** 3, device=self.density_ema.device), chunk_cells):
+            corners[ids] = density_fn(cell_coordinates(ids, g + 1) / g).float()
+        corners = torch.nan_to_num(corners, nan=0.0, posinf=1e6).reshape(1, 1, g + 1, g + 1, g + 1)
+        self.seed(torch.nn.functional.max_pool3d(corners, kernel_size=2, stride=1).reshape(-1))
+
     def cell_indices(self, unit_positions: Tensor) -> Tensor:
         """[M, 3] positions in the contracted unit cube -> [M] flat cell indices (always in range)."""
         return flat_cell_indices(unit_positions, self.resolution)
@@ -169,8 +218,8 @@ class OccupancyGrid(nn.Module):
         cells of faint haze hold many samples that would be evaluated only to be dropped: this test
         drops them first. The estimate is the largest density seen in the cell and its 6 face
         neighbours (:meth:`neighbourhood_estimates`): a cell's own estimate comes from a few random
-        points and can miss a surface that only grazes it, its neighbour inside the surface does not.
-        Cells never evaluated (infinite estimate) and NaN or infinite intervals are always worth
+        points and can miss a surface that only grazes it, its neighbour inside the surface does not
+        (without ``neighbourhood_alpha_test``, the cell's own estimate). Cells never evaluated (infinite estimate) and NaN or infinite intervals are always worth
         evaluating.
 
         Args:
@@ -179,7 +228,7 @@ class OccupancyGrid(nn.Module):
             alpha_threshold: opacity below which a sample is not worth evaluating.
         """
         cells = self.cell_indices(unit_positions)
-        estimates = self.neighbourhood_estimates()[cells]
+        estimates = (self.neighbourhood_estimates() if self.neighbourhood_alpha_test else self.density_ema)[cells]
         # NaN (inf * 0: a cell never evaluated, or a NaN interval) counts as opaque: evaluated
         optical_depth = torch.nan_to_num(estimates * deltas, nan=float("inf"))
         # 1 - exp(-d) >= a  <=>  d >= -log(1 - a)
@@ -189,17 +238,10 @@ class OccupancyGrid(nn.Module):
     def neighbourhood_estimates(self) -> Tensor:
         """[G^3] the largest density estimate of each cell and its 6 face neighbours (cached until
         the estimates change: :meth:`update`, :meth:`seed`, loading a state)."""
-        if self._neighbourhood is None or self._neighbourhood.device != self.density_ema.device:
-            g = self.resolution
-            grid = self.density_ema.reshape(g, g, g)
-            largest = grid.clone()
-            for axis in range(3):  # the 6 face neighbours (no wrap-around: edge cells have fewer)
-                ahead = grid.narrow(axis, 1, g - 1)
-                behind = grid.narrow(axis, 0, g - 1)
-                largest.narrow(axis, 0, g - 1).copy_(torch.maximum(largest.narrow(axis, 0, g - 1), ahead))
-                largest.narrow(axis, 1, g - 1).copy_(torch.maximum(largest.narrow(axis, 1, g - 1), behind))
-            self._neighbourhood = largest.reshape(-1)
-        return self._neighbourhood
+        key = _tensor_key(self.density_ema)
+        if self._neighbourhood is None or self._neighbourhood[0] != key:
+            self._neighbourhood = (key, face_neighbourhood_max(self.density_ema, self.resolution))
+        return self._neighbourhood[1]
 
     def _load_from_state_dict(self, *args, **kwargs) -> None:  # type: ignore[no-untyped-def]
         self._neighbourhood = None
@@ -207,8 +249,12 @@ class OccupancyGrid(nn.Module):
 
     @property
     def pruning(self) -> bool:
-        """Whether the grid marks any cell empty yet (never during the warm-up)."""
-        return not bool(self.occupied.all())
+        """Whether the grid marks any cell empty yet (never during the warm-up). Cached until the
+        cells change: a render asks once per segment, and a 128^3 grid has 2 M cells."""
+        key = _tensor_key(self.occupied)
+        if self._pruning is None or self._pruning[0] != key:
+            self._pruning = (key, not bool(self.occupied.all()))
+        return self._pruning[1]
 
     def occupied_fraction(self) -> float:
         """Share of cells currently marked occupied."""

@@ -117,6 +117,13 @@ class ScalarModelConfig(ModelConfig):
     """Steps during which every occupancy update re-evaluates all cells."""
     occupancy_opacity_threshold: float = 0.01
     """A cell is empty when its opacity (density over the cell's size) stays below min(this, mean)."""
+    render_occupancy_resolution: int = 128
+    """Cells per axis of the render grid: when a model's training ends, a second occupancy grid is
+    estimated from the final field at every cell's centre (about 2 M field evaluations at 128, one
+    to a few seconds on 2 cores) and saved with the model; rendering outside training uses it
+    instead of the training grid, which is coarser and remembers haze from earlier steps
+    (castle-P30: 26 instead of 40 samples evaluated per ray, the same image; docs/benchmarks.md
+    section 5). 0: rendering uses the training grid."""
     transmittance_threshold: float = 1e-3
     """Samples behind the point where a ray's transmittance drops below this are not evaluated."""
     alpha_threshold: float = 0.01
@@ -265,6 +272,17 @@ class ScalarModel(NormalsOutput, Model):
             opacity_threshold=self.config.occupancy_opacity_threshold,
             world_scale=radius,
         )
+        self.render_occupancy: Optional[OccupancyGrid] = None
+        if self.config.render_occupancy_resolution > 0:
+            self.render_occupancy = OccupancyGrid(
+                resolution=self.config.render_occupancy_resolution,
+                opacity_threshold=self.config.occupancy_opacity_threshold,
+                world_scale=radius,
+                neighbourhood_alpha_test=False,
+            )
+        # whether render_occupancy holds the final field's estimates (built by finish_training, saved
+        # with the model, cleared by the next training step)
+        self.register_buffer("render_occupancy_ready", torch.zeros((), dtype=torch.bool))
         self.image_metrics = ImageMetrics()
 
     # ----------------------------------------------------------------------------------- training
@@ -277,8 +295,48 @@ class ScalarModel(NormalsOutput, Model):
         }
 
     def update_occupancy(self, step: int) -> None:
-        """Update the occupancy grid at ``step`` of this model's phase (the pipeline calls it before each step)."""
+        """Update the occupancy grid at ``step`` of this model's phase (the pipeline calls it before
+        each step). The field is about to change, so the render grid no longer describes it."""
+        if bool(self.render_occupancy_ready):
+            self.render_occupancy_ready.fill_(False)
         self.occupancy.update(step, self._density_no_grad)
+
+    @torch.no_grad()
+    def finish_training(self) -> None:
+        """This model's training has ended (the pipeline calls it at the last step of its phase): its
+        render grid is estimated from the final field (:meth:`OccupancyGrid.refresh`), unless the
+        training grid is still in its warm-up (a field too young to tell empty space) or the config
+        has no render grid."""
+        if self.render_occupancy is None or self.occupancy.warming_up:
+            return
+        self.render_occupancy.refresh(self._density_no_grad)
+        self.render_occupancy_ready.fill_(True)
+
+    def samples_grid(self) -> OccupancyGrid:
+        """The occupancy grid that decides which samples the field evaluates now: the render grid
+        outside training once it is built (unless ``render_occupancy_resolution`` has been set to 0
+        since, which a comparison of the two can do on a loaded model), the training grid otherwise."""
+        if (self.render_occupancy is not None and not self.training and bool(self.render_occupancy_ready)
+                and self.config.render_occupancy_resolution > 0):
+            return self.render_occupancy
+        return self.occupancy
+
+    def complete_state(self, state: Dict[str, Tensor], prefix: str = "") -> Dict[str, Tensor]:
+        """``state`` (this model's tensors under ``prefix``) with the render grid's entries added,
+        not built, where it lacks them: checkpoints and block files written before the render grid
+        existed load, and their renders use the training grid. Returns ``state`` itself."""
+        if prefix + "render_occupancy_ready" not in state:
+            state[prefix + "render_occupancy_ready"] = torch.zeros((), dtype=torch.bool)
+            if self.render_occupancy is not None:
+                fresh = OccupancyGrid(resolution=self.render_occupancy.resolution)
+                for key, value in fresh.state_dict().items():
+                    state.setdefault(f"{prefix}render_occupancy.{key}", value)
+        return state
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:  # type: ignore[no-untyped-def]
+        if prefix + "occupancy.density_ema" in state_dict:  # this model's own state (not a released block's)
+            self.complete_state(state_dict, prefix)
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     @torch.no_grad()
     def seed_occupancy_from(self, other: "ScalarModel") -> None:
@@ -372,7 +430,7 @@ class ScalarModel(NormalsOutput, Model):
         if source == "grid":
             densities = self.occupancy.density_estimates(unit_positions)
         else:
-            occupied = torch.nonzero(self.occupancy.is_occupied(unit_positions)).squeeze(-1)
+            occupied = torch.nonzero(self.samples_grid().is_occupied(unit_positions)).squeeze(-1)
             densities = torch.zeros(unit_positions.shape[0], device=unit_positions.device)
             densities[occupied] = self._density_no_grad(unit_positions[occupied])
         weights, _ = render_weights(densities.reshape(samples.t_mid.shape), samples.t_ends - samples.t_starts)
@@ -448,7 +506,7 @@ class ScalarModel(NormalsOutput, Model):
         samples, [M, L*F] their hash-grid encoding from the no-grad pass, or None when there was no
         such pass), so that the pass with gradients does not encode them again."""
         if self.config.transmittance_threshold <= 0:
-            return torch.nonzero(self.occupancy.is_occupied(unit_positions)).squeeze(-1), None
+            return torch.nonzero(self.samples_grid().is_occupied(unit_positions)).squeeze(-1), None
         candidate_ids = torch.nonzero(self._worth_evaluating(unit_positions, deltas.reshape(-1))).squeeze(-1)
         if candidate_ids.numel() == 0:
             return candidate_ids, None
@@ -474,7 +532,7 @@ class ScalarModel(NormalsOutput, Model):
         num_rays, num_samples = deltas.shape
         threshold = self.config.transmittance_threshold
         if threshold <= 0 or num_rays == 0:
-            candidate_ids = torch.nonzero(self.occupancy.is_occupied(unit_positions)).squeeze(-1)
+            candidate_ids = torch.nonzero(self.samples_grid().is_occupied(unit_positions)).squeeze(-1)
             density, geo = self.field.density_at_unit(unit_positions[candidate_ids])
             return candidate_ids, density, geo
         occupied = self._worth_evaluating(unit_positions, deltas.reshape(-1)).reshape(num_rays, num_samples)
@@ -515,7 +573,7 @@ class ScalarModel(NormalsOutput, Model):
     def _skips_transparent_samples(self) -> bool:
         """Whether samples more transparent than ``alpha_threshold`` are dropped now: once the
         occupancy grid marks cells empty (after its warm-up), unless the threshold is 0."""
-        return self.config.alpha_threshold > 0 and self.occupancy.pruning
+        return self.config.alpha_threshold > 0 and self.samples_grid().pruning
 
     @torch.no_grad()
     def _worth_evaluating(self, unit_positions: Tensor, deltas: Tensor) -> Tensor:
@@ -523,9 +581,10 @@ class ScalarModel(NormalsOutput, Model):
         field evaluates: those in occupied cells and, once the grid prunes (as for the rendered
         samples' ``alpha_threshold``), only those the grid's estimates make opaque enough
         (``grid_alpha_skip``)."""
+        grid = self.samples_grid()
         if self.config.grid_alpha_skip and self._skips_transparent_samples():
-            return self.occupancy.worth_evaluating(unit_positions, deltas, self.config.alpha_threshold)
-        return self.occupancy.is_occupied(unit_positions)
+            return grid.worth_evaluating(unit_positions, deltas, self.config.alpha_threshold)
+        return grid.is_occupied(unit_positions)
 
     @torch.no_grad()
     def _kept_candidates(self, candidate_ids: Tensor, density: Tensor, deltas: Tensor) -> Tensor:

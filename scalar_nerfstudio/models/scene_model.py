@@ -257,7 +257,8 @@ class ScalarSceneModel(NormalsOutput, Model):
         return spec_numel(specs, [k for k in specs if k.startswith(head)])
 
     def _install_block(self, block: int, state: Dict[str, Tensor], what: str, evictable: bool) -> None:
-        install_tensors(self.blocks[str(block)], state, self._block_specs[block], what)
+        model = self.blocks[str(block)]
+        install_tensors(model, model.complete_state(dict(state)), self._block_specs[block], what)
         self.resident.add(block, evictable)
         for other in self.resident.over_limit(keep=block):
             self.release_block(other)
