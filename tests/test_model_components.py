@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import warnings
 from typing import List
 
 import pytest
@@ -295,6 +296,32 @@ def test_a_model_that_finishes_training_renders_the_same_image_with_fewer_evalua
     for key in ("rgb", "depth", "accumulation"):
         torch.testing.assert_close(images[1][key], images[0][key], atol=1e-4, rtol=0)
     assert evaluated[1] < 0.7 * evaluated[0], evaluated
+
+
+def test_a_saved_render_grid_loads_where_it_fits_and_is_set_aside_where_it_does_not() -> None:
+    """A model's render grid travels with its state; a state without one (written before it existed)
+    or with one of another resolution loads too, and renders use the training grid."""
+    source = small_scalar_model(render_occupancy_resolution=8)
+    assert source.render_occupancy is not None
+    source.render_occupancy.refresh(_sphere_density)
+    source.render_occupancy_ready.fill_(True)
+    state = source.state_dict()
+    same = small_scalar_model(render_occupancy_resolution=8)
+    same.load_state_dict(state, strict=True)
+    same.eval()
+    assert bool(same.render_occupancy_ready) and same.samples_grid() is same.render_occupancy
+    assert torch.equal(same.render_occupancy.occupied, source.render_occupancy.occupied)
+    same.train()
+    assert same.samples_grid() is same.occupancy  # training always uses the training grid
+    older = {k: v for k, v in state.items() if not k.startswith("render_occupancy")}
+    for resolution, saved, warns in ((8, older, False), (4, state, True), (0, state, True)):
+        model = small_scalar_model(render_occupancy_resolution=resolution)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            model.load_state_dict(dict(saved), strict=True)
+        assert any("render grid" in str(w.message) for w in caught) == warns
+        model.eval()
+        assert not bool(model.render_occupancy_ready) and model.samples_grid() is model.occupancy
 
 
 def test_schedule_warms_up_linearly_then_decays_to_a_tenth() -> None:

@@ -322,15 +322,26 @@ class ScalarModel(NormalsOutput, Model):
         return self.occupancy
 
     def complete_state(self, state: Dict[str, Tensor], prefix: str = "") -> Dict[str, Tensor]:
-        """``state`` (this model's tensors under ``prefix``) with the render grid's entries added,
-        not built, where it lacks them: checkpoints and block files written before the render grid
-        existed load, and their renders use the training grid. Returns ``state`` itself."""
-        if prefix + "render_occupancy_ready" not in state:
+        """``state`` (this model's tensors under ``prefix``) with its render grid made to fit this
+        model: where it lacks one (checkpoints and block files written before the render grid
+        existed) or holds one of another resolution (the run's config edited since), the render
+        grid is taken as not built, and renders use the training grid (a warning says so for a
+        mismatch). Returns ``state`` itself, changed in place."""
+        head = prefix + "render_occupancy."
+        expected = {} if self.render_occupancy is None else {head + k: v for k, v in self.render_occupancy.state_dict().items()}
+        given = {k: v for k, v in state.items() if k.startswith(head)}
+        fits = set(given) == set(expected) and all(given[k].shape == expected[k].shape for k in given)
+        if given and not fits:
+            warnings.warn(f"the saved render grid ({len(next(iter(given.values())))} cells) does not fit this model's "
+                          f"({'none' if self.render_occupancy is None else self.render_occupancy.resolution ** 3} cells): "
+                          "rendering uses the training grid")
+        if not fits or prefix + "render_occupancy_ready" not in state:
+            for key in given:
+                del state[key]
             state[prefix + "render_occupancy_ready"] = torch.zeros((), dtype=torch.bool)
             if self.render_occupancy is not None:
                 fresh = OccupancyGrid(resolution=self.render_occupancy.resolution)
-                for key, value in fresh.state_dict().items():
-                    state.setdefault(f"{prefix}render_occupancy.{key}", value)
+                state.update({head + k: v for k, v in fresh.state_dict().items()})
         return state
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:  # type: ignore[no-untyped-def]
