@@ -1,11 +1,13 @@
-"""Lazy, once-per-process JIT build of the C++/OpenMP hash-grid kernel.
+"""Lazy, once-per-process JIT build of the C++/OpenMP CPU kernels.
 
-The kernel (``scalar_nerfstudio/csrc/hash_grid.cpp``) is compiled with
-:func:`torch.utils.cpp_extension.load` on first use (~10 s; cached afterwards in torch's extension
-directory, ``$TORCH_EXTENSIONS_DIR`` or ``~/.cache/torch_extensions``) and registers the ops
-``torch.ops.scalar_nerf_hash_grid.forward`` and ``torch.ops.scalar_nerf_hash_grid.backward``.
+The kernels (``scalar_nerfstudio/csrc/hash_grid.cpp`` and ``csrc/sampling.cpp``) are compiled
+into one extension with :func:`torch.utils.cpp_extension.load` on first use (~20 s; cached
+afterwards in torch's extension directory, ``$TORCH_EXTENSIONS_DIR`` or
+``~/.cache/torch_extensions``). It registers the ops ``torch.ops.scalar_nerf_hash_grid.forward``
+and ``.backward`` (the hash grid), and ``torch.ops.scalar_nerf_sampling.unit_positions`` and
+``.worth_evaluating`` (ray samples and the occupancy test).
 If the build fails (no C++ compiler, no ninja, ...) one warning is logged and callers fall back
-to the pure-torch implementation.
+to their pure-torch implementations.
 """
 
 from __future__ import annotations
@@ -21,7 +23,8 @@ if TYPE_CHECKING:
     from torch._ops import _OpNamespace
 
 EXTENSION_NAME = "scalar_nerf_hash_grid"
-SOURCE = Path(__file__).resolve().parent.parent / "csrc" / "hash_grid.cpp"
+SOURCES = [Path(__file__).resolve().parent.parent / "csrc" / name for name in ("hash_grid.cpp", "sampling.cpp")]
+SAMPLING_NAMESPACE = "scalar_nerf_sampling"
 
 _logger = logging.getLogger(__name__)
 _lock = threading.Lock()
@@ -46,7 +49,7 @@ def load_extension() -> _OpNamespace | None:
 
                 load(
                     name=EXTENSION_NAME,
-                    sources=[str(SOURCE)],
+                    sources=[str(source) for source in SOURCES],
                     extra_cflags=["-O3", "-fopenmp"],
                     extra_ldflags=["-fopenmp"],
                     is_python_module=False,
@@ -56,11 +59,19 @@ def load_extension() -> _OpNamespace | None:
             except Exception as exc:  # noqa: BLE001 - any build/load failure means "use the torch path"
                 _error = f"{type(exc).__name__}: {exc}"
                 _logger.warning(
-                    "Could not build the C++ hash-grid kernel (%s); falling back to the pure-torch "
-                    "implementation, which is several times slower on CPU.",
+                    "Could not build the C++ kernels (%s); falling back to the pure-torch "
+                    "implementations, which are several times slower on CPU.",
                     _error.splitlines()[0],
                 )
         return _ops
+
+
+def sampling_ops() -> _OpNamespace | None:
+    """``torch.ops.scalar_nerf_sampling`` (``unit_positions``, ``worth_evaluating``), or ``None``
+    when the extension cannot be built (builds it on first call)."""
+    if load_extension() is None:
+        return None
+    return getattr(torch.ops, SAMPLING_NAMESPACE)
 
 
 def require_extension() -> _OpNamespace:

@@ -15,7 +15,7 @@ from nerfstudio.field_components.activations import trunc_exp
 from nerfstudio.field_components.encodings import SHEncoding
 from torch import Tensor, nn
 
-from scalar_nerfstudio.encodings import HashGridEncoding
+from scalar_nerfstudio.encodings import HashGridEncoding, _cpp
 from scalar_nerfstudio.encodings.hash_grid import level_corners, sanitise_positions
 
 # Values beyond this magnitude are clamped before contraction: far enough to contract to the
@@ -43,6 +43,33 @@ def contract(positions: Tensor) -> Tensor:
 def contract_to_unit_cube(positions: Tensor) -> Tensor:
     """[N, 3] world positions -> [N, 3] in [0, 1]^3 (contracted ball of radius 2 mapped to the cube)."""
     return (contract(positions) / 4.0 + 0.5).clamp(0.0, 1.0)
+
+
+def contract_rays_to_unit_cube(origins: Tensor, directions: Tensor, t: Tensor, centre: Tensor, radius: float) -> Tensor:
+    """The samples at distances ``t`` along rays, in the contracted unit cube of a region.
+
+    ``contract_to_unit_cube((origins + directions * t - centre) / radius)`` for every sample, in one
+    pass of the C++ kernel on the CPU (no [R, S, 3] temporaries), in torch elsewhere or when the
+    kernel does not build.
+
+    Args:
+        origins: [R, 3] world ray origins.
+        directions: [R, 3] world ray directions.
+        t: [R, S] distances along the rays (world units).
+        centre: [3] the region's centre (world).
+        radius: the region's radius (world units per unit of the region frame).
+
+    Returns:
+        [R * S, 3] positions in [0, 1]^3, ray-major.
+    """
+    on_cpu_float32 = all(x.device.type == "cpu" and x.dtype == torch.float32 for x in (origins, directions, t, centre))
+    ops = _cpp.sampling_ops() if on_cpu_float32 else None
+    if ops is not None:
+        return ops.unit_positions(origins.contiguous(), directions.contiguous(), t.contiguous(), centre.contiguous(), float(radius))
+    positions = (origins[:, None, :] + directions[:, None, :] * t[..., None]).reshape(-1, 3)
+    if radius != 1.0 or bool(centre.any()):
+        positions = (positions - centre.to(positions.dtype)) / radius
+    return contract_to_unit_cube(positions)
 
 
 def unit_cube_to_world(unit_positions: Tensor) -> Tensor:

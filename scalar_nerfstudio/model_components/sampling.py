@@ -1,6 +1,7 @@
 """Ray sampling for unbounded scenes and a CPU-friendly occupancy grid for empty-space skipping.
 
-nerfacc's occupancy grid is CUDA-only; this one is plain torch. It stores a density estimate per
+nerfacc's occupancy grid is CUDA-only; this one is plain torch (its per-sample test runs in one
+pass of a C++ kernel on the CPU, ``csrc/sampling.cpp``, when that builds). It stores a density estimate per
 cell of a ``[G, G, G]`` grid over the *contracted* scene cube ``[0, 1]^3`` (see
 ``fields.scalar_field.contract_to_unit_cube``), so one grid covers the whole unbounded scene.
 """
@@ -8,10 +9,15 @@ cell of a ``[G, G, G]`` grid over the *contracted* scene cube ``[0, 1]^3`` (see
 from __future__ import annotations
 
 import math
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import torch
 from torch import Tensor, nn
+
+from scalar_nerfstudio.encodings import _cpp
+
+if TYPE_CHECKING:
+    from torch._ops import _OpNamespace
 
 
 def lin_disp_spacing(t: Tensor) -> Tensor:
@@ -207,7 +213,17 @@ class OccupancyGrid(nn.Module):
 
     def is_occupied(self, unit_positions: Tensor) -> Tensor:
         """[M, 3] contracted unit-cube positions -> [M] bool."""
+        ops = self._cpu_kernels(unit_positions)
+        if ops is not None:
+            return ops.worth_evaluating(unit_positions.contiguous(), unit_positions.new_empty(0), self.occupied, unit_positions.new_empty(0), self.resolution, 0.0)
         return self.occupied[self.cell_indices(unit_positions)]
+
+    def _cpu_kernels(self, unit_positions: Tensor) -> _OpNamespace | None:
+        """``torch.ops.scalar_nerf_sampling`` for float32 positions on the CPU when the C++ kernels
+        build (one pass, no [M, 3] temporaries); None: the torch code."""
+        if unit_positions.device.type != "cpu" or unit_positions.dtype != torch.float32 or self.density_ema.device.type != "cpu":
+            return None
+        return _cpp.sampling_ops()
 
     def worth_evaluating(self, unit_positions: Tensor, deltas: Tensor, alpha_threshold: float) -> Tensor:
         """[M] bool: samples in occupied cells whose opacity over their own interval, from the density
@@ -227,13 +243,16 @@ class OccupancyGrid(nn.Module):
             deltas: [M] interval lengths in world units (the unit of the density estimates).
             alpha_threshold: opacity below which a sample is not worth evaluating.
         """
-        cells = self.cell_indices(unit_positions)
-        estimates = (self.neighbourhood_estimates() if self.neighbourhood_alpha_test else self.density_ema)[cells]
-        # NaN (inf * 0: a cell never evaluated, or a NaN interval) counts as opaque: evaluated
-        optical_depth = torch.nan_to_num(estimates * deltas, nan=float("inf"))
+        cell_estimates = self.neighbourhood_estimates() if self.neighbourhood_alpha_test else self.density_ema
         # 1 - exp(-d) >= a  <=>  d >= -log(1 - a)
-        worth = optical_depth >= -math.log1p(-min(max(alpha_threshold, 0.0), 1.0 - 1e-7))
-        return self.occupied[cells] & worth
+        min_optical_depth = -math.log1p(-min(max(alpha_threshold, 0.0), 1.0 - 1e-7))
+        ops = self._cpu_kernels(unit_positions) if deltas.dtype == torch.float32 else None
+        if ops is not None:
+            return ops.worth_evaluating(unit_positions.contiguous(), deltas.contiguous(), self.occupied, cell_estimates.contiguous(), self.resolution, min_optical_depth)
+        cells = self.cell_indices(unit_positions)
+        # NaN (inf * 0: a cell never evaluated, or a NaN interval) counts as opaque: evaluated
+        optical_depth = torch.nan_to_num(cell_estimates[cells] * deltas, nan=float("inf"))
+        return self.occupied[cells] & (optical_depth >= min_optical_depth)
 
     def neighbourhood_estimates(self) -> Tensor:
         """[G^3] the largest density estimate of each cell and its 6 face neighbours (cached until

@@ -32,7 +32,7 @@ from nerfstudio.models.base_model import Model, ModelConfig
 from torch import Tensor
 from torch.nn import Parameter
 
-from scalar_nerfstudio.fields.scalar_field import ScalarField, ScalarFieldConfig, contract_to_unit_cube, unit_cube_to_world
+from scalar_nerfstudio.fields.scalar_field import ScalarField, ScalarFieldConfig, contract_rays_to_unit_cube, contract_to_unit_cube, unit_cube_to_world
 from scalar_nerfstudio.metrics import ImageMetrics, psnr
 from scalar_nerfstudio.model_components.rendering import (
     alphas_from_densities,
@@ -235,8 +235,12 @@ class _RaySamples:
     t_starts: Tensor  # [R, S]
     t_ends: Tensor  # [R, S]
     t_mid: Tensor  # [R, S]
-    positions: Tensor  # [R, S, 3] world
     unit_positions: Tensor  # [R*S, 3] contracted unit cube
+
+    def world_positions(self, sample_ids: Tensor) -> Tensor:
+        """[M] flat sample indices into [R*S] -> [M, 3] their world positions."""
+        ray_ids = torch.div(sample_ids, self.t_mid.shape[1], rounding_mode="floor")
+        return self.origins[ray_ids] + self.directions[ray_ids] * self.t_mid.reshape(-1)[sample_ids, None]
 
 
 class ScalarModel(NormalsOutput, Model):
@@ -392,7 +396,7 @@ class ScalarModel(NormalsOutput, Model):
         samples = self._ray_samples(ray_bundle, jitter=self.training)
         origins, directions, fars, t_starts, t_ends, t_mid = (
             samples.origins, samples.directions, samples.fars, samples.t_starts, samples.t_ends, samples.t_mid)
-        positions, unit_positions = samples.positions, samples.unit_positions
+        unit_positions = samples.unit_positions
         num_rays, num_samples = t_mid.shape
         deltas = t_ends - t_starts
 
@@ -422,7 +426,7 @@ class ScalarModel(NormalsOutput, Model):
         samples_per_ray = torch.bincount(ray_ids, minlength=num_rays).to(rgb.dtype)[:, None]
         outputs["samples_per_ray"] = samples_per_ray
         if self.normals_wanted() if normals is None else normals:
-            outputs["normals"] = normals_to_unit_interval(self._ray_normals(positions, sample_ids, weights.detach(), directions))
+            outputs["normals"] = normals_to_unit_interval(self._ray_normals(samples, sample_ids, weights.detach()))
         return outputs
 
     @torch.no_grad()
@@ -462,25 +466,23 @@ class ScalarModel(NormalsOutput, Model):
             num_samples = min(self.config.warmup_samples_per_ray, num_samples)
         t_starts, t_ends = sample_intervals(nears, fars, num_samples, jitter=jitter)
         t_mid = (t_starts + t_ends) / 2.0
-        positions = origins[:, None, :] + directions[:, None, :] * t_mid[..., None]  # [R, S, 3] world
-        unit_positions = contract_to_unit_cube(self._to_region(positions.reshape(-1, 3)))  # [R*S, 3]
-        return _RaySamples(origins, directions, fars, t_starts, t_ends, t_mid, positions, unit_positions)
+        unit_positions = contract_rays_to_unit_cube(origins, directions, t_mid, self.region_centre, self.region_radius)  # [R*S, 3]
+        return _RaySamples(origins, directions, fars, t_starts, t_ends, t_mid, unit_positions)
 
-    def _ray_normals(self, positions: Tensor, sample_ids: Tensor, weights: Tensor, directions: Tensor) -> Tensor:
+    def _ray_normals(self, samples: "_RaySamples", sample_ids: Tensor, weights: Tensor) -> Tensor:
         """Expected unit normal per ray, [R, 3] in [-1, 1].
 
         Args:
-            positions: [R, S, 3] world positions of the samples.
+            samples: the rays' samples; a ray without a normal (nothing hit, or zero density
+                gradient everywhere) gets its reversed, normalised direction (it faces the camera).
             sample_ids: [M] flat indices of the evaluated samples.
             weights: [R, S] rendering weights.
-            directions: [R, 3] ray directions; a ray without a normal (nothing hit, or zero density
-                gradient everywhere) gets the reversed, normalised direction (it faces the camera).
         """
         num_rays, num_samples = weights.shape
         heavy = sample_ids[weights.reshape(-1)[sample_ids] > NORMALS_MIN_WEIGHT]
-        sample_normals = positions.new_zeros(num_rays * num_samples, 3)
-        sample_normals[heavy] = self.density_normals(positions.reshape(-1, 3)[heavy])
-        facing = facing_normals(directions)
+        sample_normals = weights.new_zeros(num_rays * num_samples, 3)
+        sample_normals[heavy] = self.density_normals(samples.world_positions(heavy))
+        facing = facing_normals(samples.directions)
         return render_normals(weights, sample_normals.reshape(num_rays, num_samples, 3), facing)
 
     def density_normals(self, positions: Tensor) -> Tensor:
