@@ -45,6 +45,14 @@ def contract_to_unit_cube(positions: Tensor) -> Tensor:
     return (contract(positions) / 4.0 + 0.5).clamp(0.0, 1.0)
 
 
+def to_region_frame(positions: Tensor, centre: Tensor, radius: float) -> Tensor:
+    """[N, 3] world positions -> [N, 3] in a region's frame (``centre`` [3] at the origin, ``radius``
+    world units to 1); the positions themselves for the whole scene's frame (centre 0, radius 1)."""
+    if radius == 1.0 and not bool(centre.any()):
+        return positions
+    return (positions - centre.to(positions.dtype)) / radius
+
+
 def contract_rays_to_unit_cube(origins: Tensor, directions: Tensor, t: Tensor, centre: Tensor, radius: float) -> Tensor:
     """The samples at distances ``t`` along rays, in the contracted unit cube of a region.
 
@@ -67,9 +75,7 @@ def contract_rays_to_unit_cube(origins: Tensor, directions: Tensor, t: Tensor, c
     if ops is not None:
         return ops.unit_positions(origins.contiguous(), directions.contiguous(), t.contiguous(), centre.contiguous(), float(radius))
     positions = (origins[:, None, :] + directions[:, None, :] * t[..., None]).reshape(-1, 3)
-    if radius != 1.0 or bool(centre.any()):
-        positions = (positions - centre.to(positions.dtype)) / radius
-    return contract_to_unit_cube(positions)
+    return contract_to_unit_cube(to_region_frame(positions, centre, radius))
 
 
 def unit_cube_to_world(unit_positions: Tensor) -> Tensor:
