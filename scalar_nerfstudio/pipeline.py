@@ -407,13 +407,18 @@ class ScalarPipeline(VanillaPipeline):
     def param_group_phases(self) -> Dict[str, Tuple[str, Optional[Phase]]]:
         """For each optimiser parameter group: (template key in ``optimizers``, the phase it trains in).
 
-        A block's groups use the ``encoder`` / ``appearance`` templates, and ``block_decoder`` for a
-        fine-tuned decoder copy."""
+        A block's groups use the ``block_encoder`` (its table) and ``appearance`` templates, and
+        ``block_decoder`` for a fine-tuned decoder copy (the trainer falls back to ``encoder`` for a
+        config.yml without ``block_encoder``: ``engine.trainer.TEMPLATE_FALLBACKS``)."""
         phase_of_block = {phase.block: phase for phase in self.phases}
         templates = {}
         for group, _ in self.model.param_groups_by_model():
-            finetuned = group.block is not None and group.part == "decoder" and self.config.decoder_mode == "finetune"
-            templates[group.name] = ("block_decoder" if finetuned else group.part, phase_of_block.get(group.block))
+            template = group.part
+            if group.block is not None and group.part == "encoder":
+                template = "block_encoder"
+            elif group.block is not None and group.part == "decoder" and self.config.decoder_mode == "finetune":
+                template = "block_decoder"
+            templates[group.name] = (template, phase_of_block.get(group.block))
         return templates
 
     @property

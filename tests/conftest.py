@@ -10,7 +10,7 @@ import sys
 import time
 import urllib.request
 from pathlib import Path
-from typing import Dict, List, Optional
+from typing import Any, Callable, Dict, List, Optional
 
 import pytest
 import torch
@@ -181,11 +181,13 @@ def full_run(scene: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     return run
 
 
-def tiny_trainer(scene: Path, output_dir: Path, log2_hashmap_size: int = 14, rays_per_batch: int = 512, **pipeline: object):
+def tiny_trainer(scene: Path, output_dir: Path, log2_hashmap_size: int = 14, rays_per_batch: int = 512,
+                 configure: Optional[Callable[[Any], None]] = None, **pipeline: object):
     """An in-process scalar-nerf trainer on ``scene`` with tiny settings, set up but not trained.
 
     ``pipeline`` sets attributes of the pipeline config (e.g. ``num_blocks=2``, ``decoder_mode=...``);
-    defaults: 2 blocks, 20 global and 8 block steps.
+    defaults: 2 blocks, 20 global and 8 block steps. ``configure`` may change the trainer config
+    further before it is set up.
     """
     import copy
 
@@ -206,6 +208,8 @@ def tiny_trainer(scene: Path, output_dir: Path, log2_hashmap_size: int = 14, ray
     settings = {"num_blocks": NUM_BLOCKS, "global_steps": 20, "block_steps": 8, **pipeline}
     for key, value in settings.items():
         setattr(config.pipeline, key, value)
+    if configure is not None:
+        configure(config)
     config.set_timestamp()
     config.save_config()
     trainer = config.setup(local_rank=0, world_size=1)

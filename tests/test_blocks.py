@@ -94,9 +94,9 @@ def test_ns_eval_fuses_the_blocks(full_run: Path, tmp_path: Path) -> None:
 # ------------------------------------------------------------- in-process runs (decoder modes)
 
 
-def _trainer(scene: Path, output_dir: Path, **pipeline: object):
+def _trainer(scene: Path, output_dir: Path, configure=None, **pipeline: object):
     """A scalar-nerf trainer on ``scene`` with the TINY settings, set up but not trained."""
-    return tiny_trainer(scene, output_dir, **pipeline)
+    return tiny_trainer(scene, output_dir, configure=configure, **pipeline)
 
 
 def _decoder_params(model) -> List[torch.Tensor]:
@@ -194,6 +194,28 @@ def test_global_phase_holds_its_learning_rate_only_when_blocks_follow(scene: Pat
             assert _lr_factor(trainer, group, start + block_steps) == pytest.approx(0.1)
     single = _trainer(scene, tmp_path / "single", lr_schedule=lr_schedule, num_blocks=1, train_blocks=False)
     assert _lr_factor(single, "encoder", global_steps) == pytest.approx(0.1)
+
+
+def test_block_tables_train_at_the_block_encoder_rate(scene: Path, tmp_path: Path) -> None:
+    """A block's table takes ``--optimizers.block-encoder`` (the global table ``encoder``); a config.yml
+    from before that template existed trains its block tables at the ``encoder`` rate, as it did."""
+
+    def initial_lr(trainer, group: str) -> float:
+        return float(trainer.optimizers.optimizers[group].param_groups[0]["initial_lr"])
+
+    trainer = _trainer(scene, tmp_path / "now")
+    optimizers = trainer.config.optimizers
+    assert optimizers["block_encoder"]["optimizer"].lr != optimizers["encoder"]["optimizer"].lr
+    assert initial_lr(trainer, "encoder") == pytest.approx(optimizers["encoder"]["optimizer"].lr)
+    for block in range(NUM_BLOCKS):
+        assert initial_lr(trainer, f"block{block}.encoder") == pytest.approx(optimizers["block_encoder"]["optimizer"].lr)
+        assert initial_lr(trainer, f"block{block}.decoder") == pytest.approx(optimizers["block_decoder"]["optimizer"].lr)
+
+    def without_block_encoder(config) -> None:
+        del config.optimizers["block_encoder"]
+
+    older = _trainer(scene, tmp_path / "older", configure=without_block_encoder)
+    assert initial_lr(older, "block0.encoder") == pytest.approx(older.config.optimizers["encoder"]["optimizer"].lr)
 
 
 # ------------------------------------------------------- scalar-nerf-block, in parallel

@@ -34,6 +34,11 @@ from scalar_nerfstudio.runs import (
     save_run_config,
 )
 
+#: Optimiser templates a config may lack, and the template used then: a config.yml written before
+#: ``block_encoder`` existed trains its block tables with ``encoder``, as they were trained.
+TEMPLATE_FALLBACKS: Dict[str, str] = {"block_encoder": "encoder"}
+
+
 @dataclass
 class ScalarTrainerConfig(TrainerConfig):
     """nerfstudio's TrainerConfig; ``--load-dir RUN/nerfstudio_models`` resumes *in* RUN."""
@@ -164,8 +169,9 @@ class ScalarTrainer(Trainer):
     def setup_optimizers(self) -> Optimizers:
         """One optimiser per parameter group, from the template in ``optimizers`` that fits the group.
 
-        A block's groups (``block{k}.encoder`` ...) use the ``encoder`` / ``appearance`` templates and
-        ``block_decoder`` for a fine-tuned decoder; each schedule spans the phase its group trains in.
+        A block's groups (``block{k}.encoder`` ...) use the ``block_encoder`` / ``appearance`` templates
+        and ``block_decoder`` for a fine-tuned decoder (a template missing from an older config falls
+        back as :data:`TEMPLATE_FALLBACKS` says); each schedule spans the phase its group trains in.
         The global model's rate is held after its warm-up when the pipeline says so
         (``holds_global_learning_rate``: blocks follow, ``--pipeline.lr-schedule restart``).
         """
@@ -175,6 +181,8 @@ class ScalarTrainer(Trainer):
         config: Dict[str, Any] = {}
         for group in param_groups:
             template, phase = phases.get(group, (group, None))
+            if template not in self.config.optimizers:
+                template = TEMPLATE_FALLBACKS.get(template, template)
             if template not in self.config.optimizers:
                 raise KeyError(f"no optimizer settings for parameter group {group!r} (looked for --optimizers.{template})")
             settings = dict(self.config.optimizers[template])
