@@ -1,0 +1,32 @@
+import sys, torch
+r = torch.load(sys.argv[1])
+C = r["centres"]; n = len(r["gt"])
+def psnr(a, b): return float(-10 * torch.log10(((a.clamp(0, 1) - b) ** 2).mean()))
+res = {}
+def add(name, f):
+    res[name] = sum(psnr(f(i), r["gt"][i]) for i in range(n)) / n
+def dist(i): return torch.linalg.vector_norm(C - r["origin"][i], dim=-1)
+def order(i): return torch.argsort(dist(i))
+add("global-only", lambda i: r["global"][i])
+add("nearest", lambda i: r["blocks"][i][order(i)[0]])
+for m in (2, 3, 4, 8):
+    add(f"mean of {m} nearest", lambda i, m=m: r["blocks"][i][order(i)[:m]].mean(0))
+for g in (1, 2, 4, 8):
+    def f(i, g=g):
+        w = dist(i) ** -g; w = w / w.sum(); return (w[:, None, None, None] * r["blocks"][i]).sum(0)
+    add(f"idw gamma {g} all", f)
+for m in (2, 3):
+    for g in (1, 2, 4):
+        def f(i, g=g, m=m):
+            o = order(i)[:m]; w = dist(i)[o] ** -g; w = w / w.sum(); return (w[:, None, None, None] * r["blocks"][i][o]).sum(0)
+        add(f"idw gamma {g} over {m} nearest", f)
+add("(nearest + global)/2", lambda i: 0.5 * (r["blocks"][i][order(i)[0]] + r["global"][i]))
+add("median of all blocks", lambda i: r["blocks"][i].median(0).values)
+add("oracle best block per image", lambda i: max((r["blocks"][i][k] for k in range(len(C))), key=lambda x: psnr(x, r["gt"][i])))
+# rank of best block by distance
+ranks = []
+for i in range(n):
+    ps = torch.tensor([psnr(r["blocks"][i][k], r["gt"][i]) for k in range(len(C))])
+    ranks.append(int((order(i) == int(ps.argmax())).nonzero()))
+print("rank (by distance) of the best block per image:", ranks)
+for k, v in sorted(res.items(), key=lambda kv: -kv[1]): print(f"{v:7.3f}  {k}")
