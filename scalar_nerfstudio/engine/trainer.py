@@ -183,8 +183,8 @@ class ScalarTrainer(Trainer):
             template, phase = phases.get(group, (group, None))
             if template not in self.config.optimizers:
                 template = TEMPLATE_FALLBACKS.get(template, template)
-            if template not in self.config.optimizers:
-                raise KeyError(f"no optimizer settings for parameter group {group!r} (looked for --optimizers.{template})")
+                if template not in self.config.optimizers:
+                    raise KeyError(f"no optimizer settings for parameter group {group!r} (looked for --optimizers.{template})")
             settings = dict(self.config.optimizers[template])
             scheduler = settings.get("scheduler")
             if isinstance(scheduler, WarmupExponentialDecaySchedulerConfig):
