@@ -1,12 +1,15 @@
 import sys, torch
+from scalar_nerfstudio.metrics import psnr as project_psnr
 r = torch.load(sys.argv[1])
 C = r["centres"]; n = len(r["gt"])
-def psnr(a, b): return float(-10 * torch.log10(((a.clamp(0, 1) - b) ** 2).mean()))
+def psnr(a, b): return float(project_psnr(a.clamp(0, 1), b))
 res = {}
 def add(name, f):
     res[name] = sum(psnr(f(i), r["gt"][i]) for i in range(n)) / n
-def dist(i): return torch.linalg.vector_norm(C - r["origin"][i], dim=-1)
-def order(i): return torch.argsort(dist(i))
+distances = [torch.linalg.vector_norm(C - r["origin"][i], dim=-1) for i in range(n)]  # [K] per view
+orders = [torch.argsort(d) for d in distances]
+def dist(i): return distances[i]
+def order(i): return orders[i]
 add("global-only", lambda i: r["global"][i])
 add("nearest", lambda i: r["blocks"][i][order(i)[0]])
 for m in (2, 3, 4, 8):
