@@ -4,9 +4,8 @@ Scenes:
   town       a large town of streets and textured buildings, driven by a rig of street-level
              cameras (transforms.json, images/, 16-bit depths/ in mm, scene.json); automatic
              K > 1, so scalar-nerf splits it into blocks (docs/town.md: with 2^12 tables, on
-             8 workers, blocks beat one model with the same table by +0.9 dB on a 2 x 2-block
-             town and by +1.1 to +1.6 dB on a 3 x 3-block one, and one with a 4x larger table
-             by 0.2-0.5 dB)
+             8 workers, blocks beat one model with the same table by +0.7 to +0.9 dB and draw
+             level with, or pass by up to 0.3 dB, one with a 4x larger table)
   courtyard  the small courtyard of scalar-nerf-demo (transforms.json, images/)
 
 Train on it with every 8th frame of the drive held out:
