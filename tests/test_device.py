@@ -68,7 +68,7 @@ assert keep_freed_memory()
 def faults(): return resource.getrusage(resource.RUSAGE_SELF).ru_minflt
 for _ in range(2):  # 64 MB, allocated and freed: the heap grows to hold it
     torch.ones(1 << 24)
-for _ in range(7):
+for _ in range(15):
     before = faults()
     torch.ones(1 << 24)
     print(faults() - before)
@@ -78,6 +78,9 @@ for _ in range(7):
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's malloc")
 def test_freed_tensor_memory_is_reused_without_new_page_faults() -> None:
     # By default glibc maps every large tensor afresh: each 64 MB tensor faults in its 16384 pages again.
+    # With the setting, one of the first few tensors may still take fresh pages (seen on a loaded machine:
+    # a small allocation of another thread splits the freed block), so the median of 15 is asserted:
+    # at most 7 of them may fault, where the default faults in all 15.
     env = {k: v for k, v in os.environ.items() if k not in GLIBC_MALLOC_ENV}
     result = subprocess.run([sys.executable, "-c", _REALLOCATE], env=env, capture_output=True, text=True, check=True)
     faults_per_tensor = sorted(int(line) for line in result.stdout.split())
