@@ -93,6 +93,10 @@ def check_pipeline_options(pipeline: Any, num_train_images: Optional[int] = None
     if getattr(pipeline, "global_steps", 1) == 0 and (getattr(pipeline, "block_steps", 1) == 0 or not getattr(pipeline, "train_blocks", True)):
         raise OptionError("--pipeline.global-steps 0 leaves nothing to train (the blocks get no steps either); give the global "
                           "phase (--pipeline.global-steps) or the blocks (--pipeline.block-steps, --pipeline.train-blocks True) some steps.")
+    restart = getattr(pipeline, "one_model_restart", 0.0)
+    if isinstance(restart, bool) or not isinstance(restart, (int, float)) or not (math.isfinite(restart) and 0.0 <= restart < 1.0):
+        raise OptionError(f"--pipeline.one-model-restart {_show(restart)}: must be a number in [0, 1) (the share of a one-model "
+                          f"run after which its learning rates restart; 0: no restart).")
     _bounds(pipeline, "block_log2_hashmap_bounds", 1, MAX_LOG2_HASHMAP_SIZE)
     _bounds(pipeline, "block_max_resolution_bounds", 1)
     log2_size = getattr(pipeline, "block_log2_hashmap_size", None)

@@ -116,6 +116,13 @@ class ScalarPipelineConfig(VanillaPipelineConfig):
     2026-11-24). On the town (docs/town.md) the held global model scores 18.10 dB after 600 steps
     against 17.37 decayed, and its 8 x 125-step blocks 18.49 against 17.93. A config.yml from before
     this option loads as ``per-phase``, as it was trained."""
+    one_model_restart: float = 0.5
+    """A run of one model (automatic K = 1, or K = 1 without blocks; ``lr_schedule`` restart) follows
+    the schedule of a run with blocks: it warms up and holds its learning rates for this share of its
+    steps, then restarts them at the rates a block starts with (its table at --optimizers.block-encoder,
+    its decoder at --optimizers.block-decoder, its appearance at --optimizers.appearance) and decays
+    over the rest. 0: one warm-up and decay over the whole run (the behaviour before 2026-11-25; a
+    config.yml from before loads so). docs/town.md, "One model on the blocks' schedule"."""
     train_blocks: bool = True
     """False: train the global phase only (blocks can then be trained with scalar-nerf-block)."""
     only_block: Optional[int] = None
@@ -139,6 +146,11 @@ class ScalarPipelineConfig(VanillaPipelineConfig):
         """:attr:`lr_schedule`, or ``per-phase`` for a config.yml written before the option existed (its
         global phase decayed, as it was trained)."""
         return self.__dict__.get("lr_schedule", "per-phase")
+
+    def effective_one_model_restart(self) -> float:
+        """:attr:`one_model_restart`, or 0 for a config.yml written before the option existed (its one
+        model decayed over its whole run, as it was trained)."""
+        return float(self.__dict__.get("one_model_restart", 0.0))
 
     def plan_settings(self) -> PlanSettings:
         """The options a block plan is decided from (blocks/plan.py)."""
@@ -427,8 +439,20 @@ class ScalarPipeline(VanillaPipeline):
         when blocks follow it, in this run or in scalar-nerf-block runs (K > 1, or K = 1 with
         train_blocks); each block decays over its phase. One model (automatic K = 1, or K = 1 without
         blocks) decays over its run."""
-        blocks_follow = not self.plan.single_model and (self.split.num_blocks > 1 or self.config.train_blocks)
-        return self.config.effective_lr_schedule() == "restart" and blocks_follow
+        return self.config.effective_lr_schedule() == "restart" and self._blocks_follow_global_model()
+
+    @property
+    def global_restart_fraction(self) -> float:
+        """Share of the global model's steps after which its rates restart at the block templates'
+        (:attr:`ScalarPipelineConfig.one_model_restart`): only in a run of one model, with
+        ``lr_schedule`` restart; 0 otherwise (no restart)."""
+        if self.config.effective_lr_schedule() != "restart" or self._blocks_follow_global_model():
+            return 0.0
+        return self.config.effective_one_model_restart()
+
+    def _blocks_follow_global_model(self) -> bool:
+        """Whether blocks train from the global model, in this run or in scalar-nerf-block runs."""
+        return not self.plan.single_model and (self.split.num_blocks > 1 or self.config.train_blocks)
 
 
 def parsed_layout_scale(parsed) -> LayoutScale:

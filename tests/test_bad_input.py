@@ -439,6 +439,8 @@ OPTION_CASES = [
     ("pipeline.max_auto_blocks", 0, None, "--pipeline.max-auto-blocks 0"),
     ("pipeline.min_overlap_images", -1, None, "--pipeline.min-overlap-images -1"),
     ("pipeline.split_seed", -3, None, "--pipeline.split-seed -3"),
+    ("pipeline.one_model_restart", 1.0, None, "--pipeline.one-model-restart 1: must be a number in [0, 1)"),
+    ("pipeline.one_model_restart", math.nan, None, "--pipeline.one-model-restart nan"),
     ("pipeline.block_log2_hashmap_bounds", (19, 14), None, "--pipeline.block-log2-hashmap-bounds 19 14: must be two whole numbers LOW HIGH"),
     ("pipeline.block_max_resolution_bounds", (2048, 64), None, "--pipeline.block-max-resolution-bounds 2048 64"),
     ("pipeline.block_log2_hashmap_size", 40, None, "--pipeline.block-log2-hashmap-size 40"),

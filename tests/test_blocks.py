@@ -192,8 +192,33 @@ def test_global_phase_holds_its_learning_rate_only_when_blocks_follow(scene: Pat
             group = f"block{block}.{part}"
             assert _lr_factor(trainer, group, start) == pytest.approx(1.0)  # too short a phase to warm up
             assert _lr_factor(trainer, group, start + block_steps) == pytest.approx(0.1)
-    single = _trainer(scene, tmp_path / "single", lr_schedule=lr_schedule, num_blocks=1, train_blocks=False)
-    assert _lr_factor(single, "encoder", global_steps) == pytest.approx(0.1)
+    decay = _trainer(scene, tmp_path / "decay", lr_schedule=lr_schedule, num_blocks=1, train_blocks=False, one_model_restart=0.0)
+    assert _lr_factor(decay, "encoder", global_steps) == pytest.approx(0.1)
+
+
+def test_one_model_holds_then_restarts_at_the_block_rates(scene: Path, tmp_path: Path) -> None:
+    """A run of one model follows the blocks' schedule: warm-up and hold for ``one_model_restart`` of its
+    steps, then its table restarts at the block table's rate, its decoder at the block decoder's, its
+    appearance at its own, each decaying 10x over the rest; ``lr_schedule`` per-phase decays throughout."""
+    steps = 200
+    trainer = _trainer(scene, tmp_path / "restart", num_blocks=1, train_blocks=False, global_steps=steps, one_model_restart=0.5)
+    optimizers = trainer.config.optimizers
+    assert trainer.pipeline.global_restart_fraction == 0.5
+    rate = {part: lambda step, part=part: _lr_factor(trainer, part, step) * optimizers[part]["optimizer"].lr
+            for part in ("encoder", "decoder", "appearance")}
+    for part, restart_template in (("encoder", "block_encoder"), ("decoder", "block_decoder"), ("appearance", "appearance")):
+        base, restarted = optimizers[part]["optimizer"].lr, optimizers[restart_template]["optimizer"].lr
+        assert rate[part](1) < base  # warming up
+        assert rate[part](40) == pytest.approx(base) and rate[part](99) == pytest.approx(base)  # held
+        assert rate[part](100) < restarted  # warming up again
+        assert rate[part](103) == pytest.approx(restarted, rel=0.05)  # warmed up, decaying from here
+        assert rate[part](steps) == pytest.approx(0.1 * restarted)
+    assert optimizers["block_encoder"]["optimizer"].lr > optimizers["encoder"]["optimizer"].lr
+    per_phase = _trainer(scene, tmp_path / "per-phase", num_blocks=1, train_blocks=False, global_steps=steps, lr_schedule="per-phase")
+    assert per_phase.pipeline.global_restart_fraction == 0.0
+    assert _lr_factor(per_phase, "encoder", steps) == pytest.approx(0.1)
+    with_blocks = _trainer(scene, tmp_path / "blocks", one_model_restart=0.5)
+    assert with_blocks.pipeline.global_restart_fraction == 0.0  # the blocks restart instead
 
 
 def test_block_tables_train_at_the_block_encoder_rate(scene: Path, tmp_path: Path) -> None:

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from conftest import ray_bundle, small_scalar_model
-from scalar_nerfstudio.engine.schedulers import warmup_exponential_decay_factor
+from scalar_nerfstudio.engine.schedulers import hold_then_restart_factor, warmup_exponential_decay_factor
 from scalar_nerfstudio.fields.scalar_field import contract, contract_to_unit_cube
 from scalar_nerfstudio.model_components.rendering import render_depth, render_weights
 from scalar_nerfstudio.model_components.sampling import OccupancyGrid, lin_disp_spacing, lin_disp_spacing_inverse, sample_intervals
@@ -332,6 +332,18 @@ def test_schedule_warms_up_linearly_then_decays_to_a_tenth() -> None:
     assert factors[1000] == pytest.approx(0.1)
     assert all(isinstance(f, float) and math.isfinite(f) for f in factors)
     assert all(a >= b for a, b in zip(factors[25:], factors[26:]))
+
+
+def test_schedule_with_a_restart_holds_then_restarts_scaled() -> None:
+    factors = [hold_then_restart_factor(s, 1000, 0.025, 0.1, 0.4, 4.0) for s in range(1001)]
+    assert factors[0] == pytest.approx(1 / 10) and factors[10] == pytest.approx(1.0)  # warm-up over 2.5 % of 400
+    assert factors[10:400] == pytest.approx([1.0] * 390)  # held
+    assert factors[400] == pytest.approx(4.0 / 15)  # warms up again over 2.5 % of 600
+    assert factors[415] == pytest.approx(4.0) and factors[1000] == pytest.approx(0.4)
+    assert all(a >= b for a, b in zip(factors[415:], factors[416:]))
+    plain = [warmup_exponential_decay_factor(s, 1000, 0.025, 0.1) for s in range(1001)]
+    for no_restart in (0.0, 0.0001, 1.0):
+        assert [hold_then_restart_factor(s, 1000, 0.025, 0.1, no_restart, 4.0) for s in range(1001)] == plain
 
 
 def _model_with_opaque_ball(reset_near_plane: bool) -> ScalarModel:

@@ -42,5 +42,10 @@ class PhasedPipeline(Protocol):
     def holds_global_learning_rate(self) -> bool:
         """The global phase's groups keep their learning rate after the warm-up (blocks follow them)."""
 
+    @property
+    def global_restart_fraction(self) -> float:
+        """Share of the global model's steps after which its rates restart at the block templates'
+        (a run of one model); 0: no restart."""
+
     def plan_report(self) -> str:
         """The split, automatic K, block capacities and phases, for the training log."""

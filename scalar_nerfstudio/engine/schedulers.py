@@ -30,6 +30,12 @@ class WarmupExponentialDecaySchedulerConfig(SchedulerConfig):
     parameter group trains in)."""
     start_step: int = 0
     """Global step at which the schedule starts (a block's phase starts after the global one)."""
+    restart_fraction: float = 0.0
+    """0: one warm-up and decay over ``max_steps``. Otherwise the schedule holds its rate after the
+    warm-up for this share of ``max_steps``, then warms up again to ``restart_factor`` x lr and decays
+    over the rest (a run of one model following the global-then-block schedule of a run with blocks)."""
+    restart_factor: float = 1.0
+    """Learning rate after the restart, relative to the initial one."""
 
 
 def warmup_exponential_decay_factor(step: int, max_steps: int, warmup_fraction: float, final_factor: float) -> float:
@@ -42,6 +48,24 @@ def warmup_exponential_decay_factor(step: int, max_steps: int, warmup_fraction: 
     return math.exp(math.log(final_factor) * progress)
 
 
+def hold_then_restart_factor(
+    step: int, max_steps: int, warmup_fraction: float, final_factor: float, restart_fraction: float, restart_factor: float
+) -> float:
+    """Multiplier of the initial learning rate at ``step`` of a schedule that restarts once.
+
+    Steps before ``round(restart_fraction * max_steps)`` warm up and then hold the rate (factor 1);
+    from there the rest warms up again and decays to ``final_factor``, all scaled by ``restart_factor``
+    (each part as :func:`warmup_exponential_decay_factor` over its own length). ``restart_fraction``
+    0 (or a restart at step 0 or at the end) is the plain schedule.
+    """
+    restart = int(round(restart_fraction * max_steps))
+    if restart <= 0 or restart >= max_steps:
+        return warmup_exponential_decay_factor(step, max_steps, warmup_fraction, final_factor)
+    if step < restart:
+        return warmup_exponential_decay_factor(step, restart, warmup_fraction, 1.0)
+    return restart_factor * warmup_exponential_decay_factor(step - restart, max_steps - restart, warmup_fraction, final_factor)
+
+
 class WarmupExponentialDecayScheduler(Scheduler):
     """Builds the ``LambdaLR`` for :class:`WarmupExponentialDecaySchedulerConfig`."""
 
@@ -51,7 +75,9 @@ class WarmupExponentialDecayScheduler(Scheduler):
         if self.config.max_steps is None:
             raise ValueError("WarmupExponentialDecaySchedulerConfig.max_steps is unset; the trainer fills it in.")
         max_steps, warmup, final = self.config.max_steps, self.config.warmup_fraction, self.config.final_factor
-        start = self.config.start_step
+        start, restart, factor = self.config.start_step, self.config.restart_fraction, self.config.restart_factor
+        if not 0.0 <= restart < 1.0 or not (math.isfinite(factor) and factor > 0):
+            raise ValueError(f"restart_fraction must lie in [0, 1) and restart_factor be positive, got {restart} and {factor}")
         return lr_scheduler.LambdaLR(
-            optimizer, lr_lambda=lambda step: warmup_exponential_decay_factor(step - start, max_steps, warmup, final)
+            optimizer, lr_lambda=lambda step: hold_then_restart_factor(step - start, max_steps, warmup, final, restart, factor)
         )

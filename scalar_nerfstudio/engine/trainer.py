@@ -37,6 +37,9 @@ from scalar_nerfstudio.runs import (
 #: Optimiser templates a config may lack, and the template used then: a config.yml written before
 #: ``block_encoder`` existed trains its block tables with ``encoder``, as they were trained.
 TEMPLATE_FALLBACKS: Dict[str, str] = {"block_encoder": "encoder"}
+#: The template whose rate a global group restarts at in a run of one model (``global_restart_fraction``):
+#: the rate a block's group starts with.
+RESTART_TEMPLATES: Dict[str, str] = {"encoder": "block_encoder", "decoder": "block_decoder"}
 
 
 @dataclass
@@ -173,7 +176,9 @@ class ScalarTrainer(Trainer):
         and ``block_decoder`` for a fine-tuned decoder (a template missing from an older config falls
         back as :data:`TEMPLATE_FALLBACKS` says); each schedule spans the phase its group trains in.
         The global model's rate is held after its warm-up when the pipeline says so
-        (``holds_global_learning_rate``: blocks follow, ``--pipeline.lr-schedule restart``).
+        (``holds_global_learning_rate``: blocks follow, ``--pipeline.lr-schedule restart``); in a run of
+        one model it is held and then restarts at the rate of the group's :data:`RESTART_TEMPLATES`
+        template (``global_restart_fraction``, ``--pipeline.one-model-restart``).
         """
         pipeline = self.phased_pipeline
         param_groups = pipeline.get_param_groups()
@@ -181,19 +186,31 @@ class ScalarTrainer(Trainer):
         config: Dict[str, Any] = {}
         for group in param_groups:
             template, phase = phases.get(group, (group, None))
-            if template not in self.config.optimizers:
-                template = TEMPLATE_FALLBACKS.get(template, template)
-                if template not in self.config.optimizers:
-                    raise KeyError(f"no optimizer settings for parameter group {group!r} (looked for --optimizers.{template})")
+            template = self._optimizer_template(group, template)
             settings = dict(self.config.optimizers[template])
             scheduler = settings.get("scheduler")
             if isinstance(scheduler, WarmupExponentialDecaySchedulerConfig):
                 start, length = (phase.start_step, phase.num_steps) if phase is not None else (0, self.config.max_num_iterations)
-                held = phase is not None and phase.block is None and pipeline.holds_global_learning_rate
+                is_global = phase is not None and phase.block is None
+                held = is_global and pipeline.holds_global_learning_rate
+                restart = pipeline.global_restart_fraction if is_global else 0.0
+                restart_factor = 1.0
+                if restart > 0:  # one model: restart at the rate a block's group starts with
+                    restart_template = self._optimizer_template(group, RESTART_TEMPLATES.get(template, template))
+                    restart_factor = float(self.config.optimizers[restart_template]["optimizer"].lr) / float(settings["optimizer"].lr)
                 settings["scheduler"] = replace(scheduler, start_step=start, max_steps=scheduler.max_steps or max(length, 1),
-                                                final_factor=1.0 if held else scheduler.final_factor)
+                                                final_factor=1.0 if held else scheduler.final_factor,
+                                                restart_fraction=restart, restart_factor=restart_factor)
             config[group] = settings
         return Optimizers(config, param_groups)
+
+    def _optimizer_template(self, group: str, template: str) -> str:
+        """``template`` if ``optimizers`` has it, else its :data:`TEMPLATE_FALLBACKS` (an older config.yml)."""
+        if template not in self.config.optimizers:
+            template = TEMPLATE_FALLBACKS.get(template, template)
+            if template not in self.config.optimizers:
+                raise KeyError(f"no optimizer settings for parameter group {group!r} (looked for --optimizers.{template})")
+        return template
 
     def train_iteration(self, step: int):
         """One step; a checkpoint is also written at the end of every phase, a preview every
