@@ -111,7 +111,7 @@ class ScalarPipelineConfig(VanillaPipelineConfig):
     """How learning rates run across phases. ``restart`` (default): when blocks follow the global
     phase, the global model warms up and then holds its learning rates (it is not the model that
     renders in the end: the blocks continue from it), and every block warms up again and decays over
-    its own phase; a run of one model (K = 1) warms up and decays over its whole run. ``per-phase``:
+    its own phase; a run of one model (K = 1) holds and then restarts as ``one_model_restart`` says. ``per-phase``:
     every phase warms up and decays 10x over its own steps, the global phase too (the behaviour before
     2026-11-24). On the town (docs/town.md) the held global model scores 18.10 dB after 600 steps
     against 17.37 decayed, and its 8 x 125-step blocks 18.49 against 17.93. A config.yml from before
@@ -438,7 +438,7 @@ class ScalarPipeline(VanillaPipeline):
         """With ``lr_schedule`` restart, the global model's groups hold their rate after the warm-up
         when blocks follow it, in this run or in scalar-nerf-block runs (K > 1, or K = 1 with
         train_blocks); each block decays over its phase. One model (automatic K = 1, or K = 1 without
-        blocks) decays over its run."""
+        blocks) does not hold to its end: see :attr:`global_restart_fraction`."""
         return self.config.effective_lr_schedule() == "restart" and self._blocks_follow_global_model()
 
     @property
