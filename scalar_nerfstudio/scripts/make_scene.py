@@ -4,8 +4,8 @@ Scenes:
   town       a large town of streets and textured buildings, driven by a rig of street-level
              cameras (transforms.json, images/, 16-bit depths/ in mm, scene.json); automatic
              K > 1, so scalar-nerf splits it into blocks (docs/town.md: on 8 workers, blocks
-             of 2^12 beat one 2^12 model trained on their schedule by +0.3 to +0.8 dB, and do
-             not beat one of 2^14)
+             of 2^12 beat one 2^12 model on the same schedule by +0.5 to +0.7 dB, and draw
+             with one of 2^14)
   courtyard  the small courtyard of scalar-nerf-demo (transforms.json, images/)
 
 Train on it with every 8th frame of the drive held out:
