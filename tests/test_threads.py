@@ -291,6 +291,7 @@ class _OnePhasePipeline:
         return {}
 
     holds_global_learning_rate = False
+    global_restart_fraction = 0.0
 
     def plan_report(self) -> str:
         return ""
