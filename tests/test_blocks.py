@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import copy
+import math
 import hashlib
 import json
 import subprocess
@@ -219,6 +220,15 @@ def test_one_model_holds_then_restarts_at_the_block_rates(scene: Path, tmp_path:
     assert _lr_factor(per_phase, "encoder", steps) == pytest.approx(0.1)
     with_blocks = _trainer(scene, tmp_path / "blocks", one_model_restart=0.5)
     assert with_blocks.pipeline.global_restart_fraction == 0.0  # the blocks restart instead
+
+
+    def frozen_table(config) -> None:  # a table at lr 0 stays frozen, before and after the restart
+        config.optimizers["encoder"]["optimizer"].lr = 0.0
+        config.optimizers["block_encoder"]["optimizer"].lr = 0.0
+
+    frozen = _trainer(scene, tmp_path / "frozen", configure=frozen_table, num_blocks=1, train_blocks=False, global_steps=steps)
+    assert frozen.optimizers.optimizers["encoder"].param_groups[0]["lr"] == 0.0
+    assert all(math.isfinite(_lr_factor(frozen, "encoder", step)) for step in (0, 50, 150, steps))
 
 
 def test_block_tables_train_at_the_block_encoder_rate(scene: Path, tmp_path: Path) -> None:

@@ -76,8 +76,8 @@ class WarmupExponentialDecayScheduler(Scheduler):
             raise ValueError("WarmupExponentialDecaySchedulerConfig.max_steps is unset; the trainer fills it in.")
         max_steps, warmup, final = self.config.max_steps, self.config.warmup_fraction, self.config.final_factor
         start, restart, factor = self.config.start_step, self.config.restart_fraction, self.config.restart_factor
-        if not 0.0 <= restart < 1.0 or not (math.isfinite(factor) and factor > 0):
-            raise ValueError(f"restart_fraction must lie in [0, 1) and restart_factor be positive, got {restart} and {factor}")
+        if not 0.0 <= restart < 1.0 or not (math.isfinite(factor) and factor >= 0):
+            raise ValueError(f"restart_fraction must lie in [0, 1) and restart_factor be finite and >= 0, got {restart} and {factor}")
         return lr_scheduler.LambdaLR(
             optimizer, lr_lambda=lambda step: hold_then_restart_factor(step - start, max_steps, warmup, final, restart, factor)
         )

@@ -197,7 +197,8 @@ class ScalarTrainer(Trainer):
                 restart_factor = 1.0
                 if restart > 0:  # one model: restart at the rate a block's group starts with
                     restart_template = self._optimizer_template(group, RESTART_TEMPLATES.get(template, template))
-                    restart_factor = float(self.config.optimizers[restart_template]["optimizer"].lr) / float(settings["optimizer"].lr)
+                    base_lr = float(settings["optimizer"].lr)  # 0: a frozen group stays frozen
+                    restart_factor = float(self.config.optimizers[restart_template]["optimizer"].lr) / base_lr if base_lr > 0 else 1.0
                 settings["scheduler"] = replace(scheduler, start_step=start, max_steps=scheduler.max_steps or max(length, 1),
                                                 final_factor=1.0 if held else scheduler.final_factor,
                                                 restart_fraction=restart, restart_factor=restart_factor)
