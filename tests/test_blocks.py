@@ -4,9 +4,9 @@
 from __future__ import annotations
 
 import copy
-import math
 import hashlib
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -220,7 +220,6 @@ def test_one_model_holds_then_restarts_at_the_block_rates(scene: Path, tmp_path:
     assert _lr_factor(per_phase, "encoder", steps) == pytest.approx(0.1)
     with_blocks = _trainer(scene, tmp_path / "blocks", one_model_restart=0.5)
     assert with_blocks.pipeline.global_restart_fraction == 0.0  # the blocks restart instead
-
 
     def frozen_table(config) -> None:  # a table at lr 0 stays frozen, before and after the restart
         config.optimizers["encoder"]["optimizer"].lr = 0.0
