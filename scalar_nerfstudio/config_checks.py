@@ -156,6 +156,10 @@ def _check_model(model: Any) -> None:
     _at_least(model, "warmup_samples_per_ray", 0, " (0: num-samples-per-ray during the warm-up too)", prefix=prefix, optional=True)
     _at_least(model, "render_occupancy_resolution", 0, " (0: rendering uses the training grid)", prefix=prefix, optional=True)
     _at_least(model, "blocks_per_ray", 0, " (0: every block on every ray)", prefix=prefix, optional=True)
+    for name in ("idw_gamma", "nearest_idw_gamma"):
+        gamma = getattr(model, name, None)
+        if gamma is not None and not (isinstance(gamma, (int, float)) and not isinstance(gamma, bool) and 0 <= gamma < float("inf")):
+            raise OptionError(f"{_flag(name, prefix)} {_show(gamma)}: must be a finite number >= 0 (0: equal weights).")
     _at_least(model, "block_fit_steps", 0, " (0: a fitted block keeps its fresh table)", prefix=prefix, optional=True)
     _at_least(model, "block_fit_points", 1, prefix=prefix, optional=True)
     near, far = getattr(model, "near_plane", 0.0), getattr(model, "far_plane", 1.0)

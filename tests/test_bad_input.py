@@ -455,6 +455,8 @@ OPTION_CASES = [
     ("pipeline.model.block_fit_steps", -1, None, "--pipeline.model.block-fit-steps -1: must be a whole number >= 0"),
     ("pipeline.model.block_fit_points", 0, None, "--pipeline.model.block-fit-points 0"),
     ("pipeline.model.warmup_samples_per_ray", -1, None, "--pipeline.model.warmup-samples-per-ray -1: must be a whole number >= 0"),
+    ("pipeline.model.nearest_idw_gamma", -1.0, None, "--pipeline.model.nearest-idw-gamma -1: must be a finite number >= 0"),
+    ("pipeline.model.idw_gamma", math.inf, None, "--pipeline.model.idw-gamma inf: must be a finite number >= 0"),
     ("max_num_iterations", -1, None, "--max-num-iterations -1"),
     ("steps_per_save", 0, None, "--steps-per-save 0"),
 ]

@@ -192,6 +192,24 @@ def test_nearest_renders_each_ray_once() -> None:
     assert torch.allclose(fused["rgb"], reference, atol=1e-5)
 
 
+def test_nearest_idw_renders_the_two_nearest_blocks_per_ray_and_matches_blending_every_block() -> None:
+    model = _scene_model("nearest-idw", blocks_per_ray=2)
+    rays = _rays()
+    model.rays_rendered_by_block = {}
+    with torch.no_grad():
+        fused = model.get_outputs(rays)
+    assert sum(model.rays_rendered_by_block.values()) == 2 * 96  # two blocks per ray, whatever K
+    dist = torch.cdist(rays.origins, model.block_centres)  # [R, K]
+    order = dist.argsort(dim=1)[:, :2]
+    weights = torch.zeros_like(dist).scatter_(1, order, dist.gather(1, order) ** -model.config.nearest_idw_gamma)
+    weights = weights / weights.sum(dim=1, keepdim=True)  # [R, K]
+    reference = (weights.t()[..., None] * torch.stack(_every_block(model, rays))).sum(dim=0)
+    assert torch.allclose(fused["rgb"], reference, atol=1e-5)
+    assert fused["block_winner"].reshape(-1).long().tolist() == order[:, 0].tolist()
+    blends = (weights > 0).sum(dim=1)
+    assert bool((blends == 2).all()) and float(weights.max(dim=1).values.min()) < 0.99  # some rays do mix two blocks
+
+
 # ------------------------------------------------------------------------------ a block's occupancy from the global model
 
 

@@ -269,13 +269,13 @@ def test_fused_normals_follow_the_fusion(scene: Path, tmp_path: Path) -> None:
     rays = ray_bundle(origins, torch.nn.functional.normalize(torch.randn(64, 3, generator=generator), dim=-1))
     with torch.no_grad():
         own = {b: model.blocks[str(b)].render_rays(rays, normals=True)["normals"] for b in model.block_ids}
-        for mode in ("global", "nearest", "block:1", "idw", "global-only"):
+        for mode in ("global", "nearest", "block:1", "idw", "nearest-idw", "global-only"):
             model.set_fusion(mode)
             outputs = model(rays)
             normals = _decoded(outputs)
             if mode == "global-only":
                 assert torch.allclose(outputs["normals"], model.global_model.render_rays(rays, normals=True)["normals"])
-            elif mode not in ("idw", "surface"):
+            elif mode not in ("idw", "surface", "nearest-idw"):
                 winner = outputs["block_winner"].reshape(-1).long()
                 assert (winner >= 0).all()
                 expected = torch.stack([own[int(w)][i] for i, w in enumerate(winner)])

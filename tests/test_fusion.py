@@ -17,6 +17,7 @@ from scalar_nerfstudio.fusion import (
     fuse_weighted,
     idw_weights,
     nearest_block,
+    nearest_idw_weights,
     parse_fusion_mode,
     select_winner,
 )
@@ -195,6 +196,67 @@ def test_nearest_block() -> None:
         nearest_block(torch.tensor([NAN, 0.0, 0.0]), CENTRES)
 
 
+def test_nearest_idw_weights_blend_the_nearest_blocks_by_inverse_distance() -> None:
+    origin = torch.tensor([2.0, 1.0, 0.0])  # nearest block 0, then 1, then 2
+    d = torch.linalg.vector_norm(CENTRES - origin, dim=-1)
+    w = nearest_idw_weights(origin, CENTRES, num_nearest=2, gamma=2.0)
+    expected = torch.tensor([d[0] ** -2, d[1] ** -2, 0.0])
+    assert torch.allclose(w, expected / expected.sum())
+    # one block: the nearest as one-hot weights; every block: plain idw
+    assert nearest_idw_weights(origin, CENTRES, 1).tolist() == [1.0, 0.0, 0.0]
+    assert torch.allclose(nearest_idw_weights(origin, CENTRES, 3, gamma=2.0), idw_weights(origin, CENTRES, 2.0))
+    assert torch.allclose(nearest_idw_weights(origin, CENTRES, 99, gamma=1.0), idw_weights(origin, CENTRES, 1.0))
+    # gamma 0: equal shares between the chosen blocks
+    assert torch.allclose(nearest_idw_weights(origin, CENTRES, 2, gamma=0.0), torch.tensor([0.5, 0.5, 0.0]))
+
+
+def test_nearest_idw_weights_per_ray_validity_ties_and_extremes() -> None:
+    origins = torch.tensor([[0.0, 0.0, 0.0], [9.0, 1.0, 0.0], [6.0, 6.0, 0.0]])
+    w = nearest_idw_weights(origins, CENTRES, 2)
+    assert w.shape == (3, 3) and torch.allclose(w.sum(dim=0), torch.ones(3))
+    assert w[0, 0] == 1.0  # a camera at a block's centre takes all the weight
+    assert w[2, 1] == 0.0 and w[:, 1].tolist()[2] == 0.0  # second ray: blocks 1 and 0 nearest, block 2 left out
+    assert (w[:, 2] > 0).sum() == 2  # tie between blocks 1 and 2 at the third ray: both chosen with block 0 left out
+    assert w[0, 2] == 0.0
+    # an invalid block is neither chosen nor weighted: the next nearest takes its place
+    valid = torch.tensor([[False, True, True], [True, True, True], [True, True, True]])
+    masked = nearest_idw_weights(origins, CENTRES, 2, valid=valid)
+    assert masked[0, 0] == 0.0 and (masked[1:, 0] > 0).all() and float(masked[:, 0].sum()) == pytest.approx(1.0)
+    none_valid = nearest_idw_weights(origins[0], CENTRES, 2, valid=torch.zeros(3, dtype=torch.bool))
+    assert torch.equal(none_valid, torch.zeros(3))
+    far = nearest_idw_weights(torch.tensor([1e30, 0.0, 0.0]), CENTRES, 2, gamma=50.0)  # d^-gamma underflows
+    assert torch.isfinite(far).all() and float(far.sum()) == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="num_nearest"):
+        nearest_idw_weights(origins, CENTRES, 0)
+    with pytest.raises(ValueError, match="gamma"):
+        nearest_idw_weights(origins, CENTRES, 2, gamma=float("inf"))
+    with pytest.raises(ValueError, match="finite"):
+        nearest_idw_weights(torch.tensor([NAN, 0.0, 0.0]), CENTRES, 2)
+
+
+def test_fuse_outputs_nearest_idw_blends_two_blocks_and_falls_back() -> None:
+    gen = torch.Generator().manual_seed(5)
+    blocks = [_outputs(gen, (4, 5)) for _ in range(3)]
+    glob = _outputs(gen, (4, 5))
+    origin = torch.tensor([2.0, 1.0, 0.0])
+    out = fuse_outputs("nearest-idw", blocks, glob, origin, CENTRES, gamma=2.0, blocks_per_ray=2)
+    w = nearest_idw_weights(origin, CENTRES, 2, 2.0)
+    for key in ("rgb", "depth", "accumulation"):
+        assert torch.allclose(out[key], w[0] * blocks[0][key] + w[1] * blocks[1][key], atol=1e-6)
+    assert (out["block_winner"] == 0).all()
+    # the nearest block missing at a pixel (not rendered there): the two nearest that are there
+    blocks[0]["rgb"][1, 2] = NAN
+    out = fuse_outputs("nearest-idw", blocks, glob, origin, CENTRES, gamma=2.0, blocks_per_ray=2)
+    w12 = nearest_idw_weights(origin, CENTRES[1:], 2, 2.0)
+    assert torch.allclose(out["rgb"][1, 2], w12[0] * blocks[1]["rgb"][1, 2] + w12[1] * blocks[2]["rgb"][1, 2], atol=1e-6)
+    # no block at a pixel: the global model's values
+    for b in blocks:
+        b["rgb"][3, 4] = NAN
+    out = fuse_outputs("nearest-idw", blocks, glob, origin, CENTRES, blocks_per_ray=2)
+    assert torch.equal(out["rgb"][3, 4], glob["rgb"][3, 4]) and out["block_winner"][3, 4] == -1
+    assert parse_fusion_mode(" Nearest-IDW ").kind == "nearest-idw" and "nearest-idw" in FUSION_MODES
+
+
 @contextlib.contextmanager
 def _float64_ops():
     """Collects the names of the torch ops run inside that produce a float64 tensor."""
@@ -245,7 +307,7 @@ def test_float32_stays_float32_and_matches_float64_on_extreme_inputs(gamma: floa
 
 
 def test_parse_fusion_mode() -> None:
-    assert set(FUSION_MODES) == {"global", "surface", "idw", "nearest", "global-only"}
+    assert set(FUSION_MODES) == {"global", "surface", "idw", "nearest", "nearest-idw", "global-only"}
     for mode in FUSION_MODES:
         assert parse_fusion_mode(mode) == ParsedFusionMode(kind=mode)  # type: ignore[arg-type]
     assert parse_fusion_mode(" IDW ").kind == "idw"

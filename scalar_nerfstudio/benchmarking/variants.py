@@ -213,7 +213,9 @@ def plan(config: BenchmarkConfig) -> Tuple[List[Variant], Dict[str, str]]:
                 automatic = {**blocks, "pipeline.num_blocks": None, "pipeline.block_steps": steps}
                 if name.endswith("fitted"):
                     automatic["pipeline.block_init"] = "fitted"
-                fusions = [default_fusion, "global", "global-only"] if name == "auto" else [default_fusion, "global-only"]
+                blended = [] if default_fusion == "nearest-idw" else ["nearest-idw"]  # the same blocks, two per ray
+                fusions = ([default_fusion, *blended, "global", "global-only"] if name == "auto"
+                           else [default_fusion, *blended, "global-only"])
                 out.append(Variant(name, "scalar-nerf", automatic, fusions, base="global", eval_every=0 if parallel else None))
         elif name == "nerfacto":
             overrides: Dict[str, Any] = {"pipeline.datamanager.train_num_rays_per_batch": config.rays_per_batch}

@@ -28,6 +28,7 @@ from scalar_nerfstudio.fusion import (
     fuse_weighted,
     fusion_weights,
     nearest_block,
+    nearest_idw_weights,
     parse_fusion_mode,
     region_scores,
     select_blocks,
@@ -67,11 +68,15 @@ class ScalarSceneModelConfig(ScalarModelConfig):
     fusion: str = "nearest"
     """How block renders are fused: nearest (default: per ray the block whose cameras are nearest the
     ray's origin; one block per ray, no global render: the best and cheapest on castle-P30 with blocks
-    started from the global model, docs/fusion.md), global (closest to the global model's colour, the
+    started from the global model, docs/fusion.md), nearest-idw (the ``blocks_per_ray`` nearest
+    blocks weighted by inverse distance), global (closest to the global model's colour, the
     paper's), surface (the block whose region holds the surface the global depth points to), idw
     (Block-NeRF's inverse distance weighting), global-only, or block:<k>."""
     idw_gamma: float = 1.0
     """Exponent of inverse distance weighting (``idw``, and ``surface`` between its blocks)."""
+    nearest_idw_gamma: float = 2.0
+    """Exponent of the inverse camera distance that weights the ``blocks_per_ray`` nearest blocks in
+    ``nearest-idw`` (2 scored best on the town, docs/town.md)."""
     seed_block_occupancy: bool = True
     """A block's occupancy grid starts from the global model's density (empty space is skipped from
     its first step) instead of a warm-up that evaluates every sample."""
@@ -81,7 +86,8 @@ class ScalarSceneModelConfig(ScalarModelConfig):
     grid's density estimates: no field evaluation, coarser)."""
     blocks_per_ray: int = 2
     """Per ray, render only this many blocks: those whose region best holds the point the global
-    model's depth gives (``global``, ``idw``, ``surface``; ``nearest`` renders one). The render cost is
+    model's depth gives (``global``, ``idw``, ``surface``), or those whose centres are nearest the ray's
+    origin (``nearest-idw``; ``nearest`` renders one). The render cost is
     then the global model's plus this many blocks', whatever the number of blocks. 0: every block on
     every ray (the paper's ``global`` rule over all blocks; cost grows with K)."""
     observed_blocks_only: bool = True
@@ -479,7 +485,8 @@ class ScalarSceneModel(NormalsOutput, Model):
         weights = fusion_weights(
             ParsedFusionMode(kind="block", block_index=0) if mode.kind == "block" else mode,
             rgb_stack, None if global_outputs is None else global_outputs["rgb"], origins,
-            self.block_centres[block_ids].to(origins.device), self.config.idw_gamma, scores,
+            self.block_centres[block_ids].to(origins.device),
+            self.config.nearest_idw_gamma if mode.kind == "nearest-idw" else self.config.idw_gamma, scores,
             self.config.blocks_per_ray or None,
         )
         orphans = ~(weights > 0).any(dim=0)  # [R] rays no block could give: the global model's
@@ -511,7 +518,8 @@ class ScalarSceneModel(NormalsOutput, Model):
     ) -> Tuple[Tensor, Optional[Tensor]]:
         """Which block renders which ray: ``([K', R] bool, [K', R] region scores or None)``.
 
-        ``block``: every ray. ``nearest``: the block whose centre is nearest to the ray's origin.
+        ``block``: every ray. ``nearest``: the block whose centre is nearest to the ray's origin;
+        ``nearest-idw``: the :attr:`blocks_per_ray` blocks nearest to it (every block with 0).
         ``global`` / ``idw`` / ``surface``: the :attr:`blocks_per_ray` blocks whose region best holds
         the point at the global model's depth (:func:`region_scores`); with ``blocks_per_ray`` 0 or
         at least K', every block (``surface`` still weights them by score). The global depth is taken
@@ -527,6 +535,8 @@ class ScalarSceneModel(NormalsOutput, Model):
             nearest = nearest_block(origins, centres)
             return torch.arange(num_blocks, device=origins.device)[:, None] == nearest[None], None
         limit = self.config.blocks_per_ray
+        if mode.kind == "nearest-idw":  # the blocks the weights will use: the `limit` nearest the origin
+            return nearest_idw_weights(origins, centres, limit if limit > 0 else num_blocks) > 0, None
         if mode.kind != "surface" and (limit <= 0 or limit >= num_blocks):
             return every, None
         if global_outputs is None:

@@ -1,7 +1,7 @@
 """``scalar-nerf-render``: nerfstudio's ``ns-render`` with ``--fusion``.
 
 Same subcommands (camera-path, interpolate, spiral, dataset) and options as ``ns-render``, plus
-``--fusion {nearest,global,surface,idw,global-only,block:K}``. Without ``--fusion`` (and with plain
+``--fusion {nearest,nearest-idw,global,surface,idw,global-only,block:K}``. Without ``--fusion`` (and with plain
 ``ns-render``) a scalar-nerf run renders with the fusion it was configured with (default nearest).
 
     scalar-nerf-render dataset --load-config RUN/config.yml --fusion idw --output-path renders/
@@ -59,7 +59,7 @@ class _FusionOption:
     """Adds ``--fusion`` to one of ns-render's commands (put first among the bases)."""
 
     fusion: Optional[str] = None
-    """nearest, global, surface, idw, global-only or block:K (default: the run's configured fusion)."""
+    """nearest, nearest-idw, global, surface, idw, global-only or block:K (default: the run's configured fusion)."""
 
     def main(self) -> None:
         _check(self.fusion)
