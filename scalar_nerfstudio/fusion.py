@@ -20,8 +20,8 @@ Modes (see :func:`parse_fusion_mode`):
 * ``"nearest"`` -- the block whose centre is nearest to the camera origin.
 * ``"nearest-idw"`` -- the ``blocks_per_ray`` blocks whose centres are nearest to the camera origin,
   weighted by inverse distance ``d_k^-gamma`` (:func:`nearest_idw_weights`): ``nearest`` blended
-  with its neighbours where a camera stands between blocks (two blocks per ray: +0.16 dB over
-  ``nearest`` on the town, docs/town.md).
+  with its neighbours where a camera stands between blocks (two blocks per ray: +0.13-0.16 dB over
+  ``nearest`` on the 2 x 2 town, 0.36 dB below it on castle-P30, docs/fusion.md: not the default).
 * ``"surface"`` -- the block whose region holds the surface the global model's depth points to:
   per pixel, the point ``o + t d`` at the global depth ``t`` is scored against every block's region
   (:func:`region_scores`, <= 1 inside it), the ``blocks_per_ray`` best are kept and weighted by
@@ -502,18 +502,18 @@ def fuse_outputs(
         block_outputs: K dicts of block renders of the same pixels.
         global_outputs: The coarse global model's renders; required for ``"global"`` and
             ``"global-only"``, used as fallback (pixels without a usable block) otherwise.
-        camera_origin: ``[3]`` or per-pixel ``[H, W, 3]`` / ``[N, 3]`` origins (idw/nearest).
-        block_centres: ``[K, 3]`` block centres, same frame as ``camera_origin`` (idw/nearest).
-        gamma: IDW exponent (``idw`` and ``surface``).
+        camera_origin: ``[3]`` or per-pixel ``[H, W, 3]`` / ``[N, 3]`` origins (idw/nearest/nearest-idw).
+        block_centres: ``[K, 3]`` block centres, same frame as ``camera_origin`` (idw/nearest/nearest-idw).
+        gamma: IDW exponent (``idw``, ``nearest-idw`` and ``surface``).
         block_scores: ``[K, *pixel_shape]`` or ``[K, N]`` :func:`region_scores` of each pixel's
             surface point (required for ``surface``).
-        blocks_per_ray: ``surface``: how many of the best-scoring blocks are weighted per pixel
-            (default: all).
+        blocks_per_ray: ``surface``: how many of the best-scoring blocks are weighted per pixel;
+            ``nearest-idw``: how many of the blocks nearest the camera (default: all).
 
     Returns:
         Fused ``"rgb"`` (+ ``"depth"``, ``"accumulation"``) shaped like the inputs, and
         ``"block_winner"`` (int64, the pixel shape): the chosen block, the largest-weight
-        block for idw / surface, ``-1`` for the global fallback and for ``"global-only"``.
+        block for idw / nearest-idw / surface, ``-1`` for the global fallback and for ``"global-only"``.
     """
     parsed = parse_fusion_mode(mode)
     if parsed.kind in ("global", "global-only") and (global_outputs is None or "rgb" not in global_outputs):
@@ -570,11 +570,12 @@ def fusion_weights(
         mode: any mode but ``global-only``.
         block_rgb: ``[K, N, 3]`` block colours; a block whose colour is NaN/inf at a pixel gets weight 0 there.
         global_rgb: ``[N, 3]`` (``global``).
-        camera_origin: ``[3]`` or ``[N, 3]`` (``idw``, ``nearest``).
-        block_centres: ``[K, 3]`` (``idw``, ``nearest``).
-        gamma: IDW exponent (``idw``, ``surface``).
+        camera_origin: ``[3]`` or ``[N, 3]`` (``idw``, ``nearest``, ``nearest-idw``).
+        block_centres: ``[K, 3]`` (``idw``, ``nearest``, ``nearest-idw``).
+        gamma: IDW exponent (``idw``, ``nearest-idw``, ``surface``).
         block_scores: ``[K, N]`` :func:`region_scores` (``surface``).
-        blocks_per_ray: ``surface``: the number of best-scoring usable blocks weighted per pixel.
+        blocks_per_ray: ``surface``: the number of best-scoring usable blocks weighted per pixel;
+            ``nearest-idw``: the number of usable blocks nearest the camera weighted per pixel.
 
     Returns:
         Weights summing to one per pixel, or all zero where no block is usable (use the global
