@@ -21,7 +21,8 @@ Modes (see :func:`parse_fusion_mode`):
 * ``"nearest-idw"`` -- the ``blocks_per_ray`` blocks whose centres are nearest to the camera origin,
   weighted by inverse distance ``d_k^-gamma`` (:func:`nearest_idw_weights`): ``nearest`` blended
   with its neighbours where a camera stands between blocks (two blocks per ray: +0.13-0.16 dB over
-  ``nearest`` on the 2 x 2 town, 0.36 dB below it on castle-P30, docs/fusion.md: not the default).
+  ``nearest`` on the 2 x 2 town, +0.01 dB on the 3 x 3, 0.36 dB below it on castle-P30,
+  docs/fusion.md: not the default).
 * ``"surface"`` -- the block whose region holds the surface the global model's depth points to:
   per pixel, the point ``o + t d`` at the global depth ``t`` is scored against every block's region
   (:func:`region_scores`, <= 1 inside it), the ``blocks_per_ray`` best are kept and weighted by
