@@ -536,7 +536,8 @@ class ScalarSceneModel(NormalsOutput, Model):
             return torch.arange(num_blocks, device=origins.device)[:, None] == nearest[None], None
         limit = self.config.blocks_per_ray
         if mode.kind == "nearest-idw":  # the blocks the weights will use: the `limit` nearest the origin
-            return nearest_idw_weights(origins, centres, limit if limit > 0 else num_blocks) > 0, None
+            # (gamma 0: equal shares, so every chosen block is marked, however far)
+            return nearest_idw_weights(origins, centres, limit if limit > 0 else num_blocks, gamma=0.0) > 0, None
         if mode.kind != "surface" and (limit <= 0 or limit >= num_blocks):
             return every, None
         if global_outputs is None:
