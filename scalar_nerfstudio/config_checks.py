@@ -158,7 +158,7 @@ def _check_model(model: Any) -> None:
     _at_least(model, "blocks_per_ray", 0, " (0: every block on every ray)", prefix=prefix, optional=True)
     for name in ("idw_gamma", "nearest_idw_gamma"):
         gamma = getattr(model, name, None)
-        if gamma is not None and not (isinstance(gamma, (int, float)) and not isinstance(gamma, bool) and 0 <= gamma < float("inf")):
+        if gamma is not None and (isinstance(gamma, bool) or not isinstance(gamma, (int, float)) or not (math.isfinite(gamma) and gamma >= 0)):
             raise OptionError(f"{_flag(name, prefix)} {_show(gamma)}: must be a finite number >= 0 (0: equal weights).")
     _at_least(model, "block_fit_steps", 0, " (0: a fitted block keeps its fresh table)", prefix=prefix, optional=True)
     _at_least(model, "block_fit_points", 1, prefix=prefix, optional=True)

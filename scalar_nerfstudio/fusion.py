@@ -52,6 +52,7 @@ __all__ = [
     "fusion_weights",
     "idw_weights",
     "nearest_block",
+    "nearest_blocks",
     "nearest_idw_weights",
     "parse_fusion_mode",
     "region_scores",
@@ -261,11 +262,7 @@ def idw_weights(
         those blocks equal shares of all the weight (no division by zero).  Where no block
         is valid all weights are 0.
     """
-    gamma = _check_gamma(gamma)
-    dist = _distances(camera_origin, block_centres)
-    weights = _inverse_distance_shares(dist, _valid_mask(valid, dist.shape, dist.device), gamma)
-    out_dtype = block_centres.dtype if block_centres.is_floating_point() else torch.float32
-    return weights.to(out_dtype)
+    return nearest_idw_weights(camera_origin, block_centres, None, gamma, valid)
 
 
 def _check_gamma(gamma: float) -> float:
@@ -381,8 +378,33 @@ def nearest_block(camera_origin: Tensor, block_centres: Tensor, valid: Tensor | 
     return torch.where(valid_mask.any(dim=0), index, torch.full_like(index, -1))
 
 
+def nearest_blocks(camera_origin: Tensor, block_centres: Tensor, num_nearest: int | None, valid: Tensor | None = None) -> Tensor:
+    """``[K]`` or ``[K, N]`` bool: the ``num_nearest`` valid blocks whose centres are nearest the camera.
+
+    Args:
+        camera_origin: ``[3]`` (one camera) or ``[N, 3]`` (per ray) positions.
+        block_centres: ``[K, 3]`` block centres, same frame and units as the origin.
+        num_nearest: how many blocks (>= 1); with ``>= K`` or None every valid block.
+        valid: optional ``[K]`` or ``[K, N]`` bool; invalid blocks are never chosen.
+
+    Ties in distance go to the lower block index; nothing is chosen where no block is valid.
+    """
+    return _nearest_of(_distances(camera_origin, block_centres), num_nearest, valid)
+
+
+def _nearest_of(dist: Tensor, num_nearest: int | None, valid: Tensor | None) -> Tensor:
+    """:func:`nearest_blocks` from the ``[K]`` or ``[K, N]`` distances."""
+    valid_mask = _valid_mask(valid, dist.shape, dist.device)
+    if num_nearest is None:
+        return valid_mask
+    if num_nearest < 1:
+        raise ValueError(f"num_nearest must be >= 1, got {num_nearest}")
+    flat = (dist.shape[0], -1)
+    return select_blocks(dist.reshape(flat), num_nearest, valid_mask.reshape(flat)).reshape(dist.shape)
+
+
 def nearest_idw_weights(
-    camera_origin: Tensor, block_centres: Tensor, num_nearest: int, gamma: float = 2.0, valid: Tensor | None = None
+    camera_origin: Tensor, block_centres: Tensor, num_nearest: int | None, gamma: float = 2.0, valid: Tensor | None = None
 ) -> Tensor:
     """Inverse-distance weights over the ``num_nearest`` valid blocks nearest to the camera (``nearest-idw``).
 
@@ -390,22 +412,18 @@ def nearest_idw_weights(
         camera_origin: ``[3]`` (one camera) or ``[N, 3]`` (per ray) positions.
         block_centres: ``[K, 3]`` block centres, same frame and units as the origin.
         num_nearest: how many of the nearest valid blocks share the weight (>= 1); with 1 this is
-            :func:`nearest_block` as one-hot weights, with ``>= K`` it is :func:`idw_weights`.
+            :func:`nearest_block` as one-hot weights, with ``>= K`` or None it is :func:`idw_weights`.
         gamma: exponent ``>= 0`` of the inverse distance.
         valid: optional ``[K]`` or ``[K, N]`` bool; invalid blocks are neither chosen nor weighted.
 
     Returns:
-        ``[K]`` or ``[K, N]`` weights summing to one over K (dtype of :func:`idw_weights`); ties in
-        distance go to the lower block index; all zero where no block is valid. A camera at a block's
-        centre gives that block all the weight.
+        ``[K]`` or ``[K, N]`` weights summing to one over K (dtype of ``block_centres`` if floating, else
+        float32); ties in distance go to the lower block index; all zero where no block is valid. A
+        camera at a block's centre gives that block all the weight.
     """
-    if num_nearest < 1:
-        raise ValueError(f"num_nearest must be >= 1, got {num_nearest}")
     gamma = _check_gamma(gamma)
     dist = _distances(camera_origin, block_centres)
-    valid_mask = _valid_mask(valid, dist.shape, dist.device)
-    chosen = select_blocks(dist.reshape(dist.shape[0], -1), num_nearest, valid_mask.reshape(dist.shape[0], -1)).reshape(dist.shape)
-    weights = _inverse_distance_shares(dist, chosen, gamma)
+    weights = _inverse_distance_shares(dist, _nearest_of(dist, num_nearest, valid), gamma)
     out_dtype = block_centres.dtype if block_centres.is_floating_point() else torch.float32
     return weights.to(out_dtype)
 

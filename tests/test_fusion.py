@@ -17,6 +17,7 @@ from scalar_nerfstudio.fusion import (
     fuse_weighted,
     idw_weights,
     nearest_block,
+    nearest_blocks,
     nearest_idw_weights,
     parse_fusion_mode,
     select_winner,
@@ -208,6 +209,16 @@ def test_nearest_idw_weights_blend_the_nearest_blocks_by_inverse_distance() -> N
     assert torch.allclose(nearest_idw_weights(origin, CENTRES, 99, gamma=1.0), idw_weights(origin, CENTRES, 1.0))
     # gamma 0: equal shares between the chosen blocks
     assert torch.allclose(nearest_idw_weights(origin, CENTRES, 2, gamma=0.0), torch.tensor([0.5, 0.5, 0.0]))
+
+
+def test_nearest_blocks_marks_the_nearest_valid_blocks() -> None:
+    origins = torch.tensor([[2.0, 1.0, 0.0], [6.0, 6.0, 0.0]])
+    assert nearest_blocks(origins, CENTRES, 2).t().tolist() == [[True, True, False], [False, True, True]]  # tie 1 vs 2 at the second
+    assert nearest_blocks(origins[0], CENTRES, 1).tolist() == [True, False, False]
+    assert nearest_blocks(origins[0], CENTRES, 2, valid=torch.tensor([False, True, True])).tolist() == [False, True, True]
+    assert nearest_blocks(origins, CENTRES, None).all() and nearest_blocks(origins, CENTRES, 9).all()
+    with pytest.raises(ValueError, match="num_nearest"):
+        nearest_blocks(origins, CENTRES, 0)
 
 
 def test_nearest_idw_weights_per_ray_validity_ties_and_extremes() -> None:

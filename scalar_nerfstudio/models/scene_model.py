@@ -28,7 +28,7 @@ from scalar_nerfstudio.fusion import (
     fuse_weighted,
     fusion_weights,
     nearest_block,
-    nearest_idw_weights,
+    nearest_blocks,
     parse_fusion_mode,
     region_scores,
     select_blocks,
@@ -536,8 +536,7 @@ class ScalarSceneModel(NormalsOutput, Model):
             return torch.arange(num_blocks, device=origins.device)[:, None] == nearest[None], None
         limit = self.config.blocks_per_ray
         if mode.kind == "nearest-idw":  # the blocks the weights will use: the `limit` nearest the origin
-            # (gamma 0: equal shares, so every chosen block is marked, however far)
-            return nearest_idw_weights(origins, centres, limit if limit > 0 else num_blocks, gamma=0.0) > 0, None
+            return nearest_blocks(origins, centres, limit if limit > 0 else num_blocks), None
         if mode.kind != "surface" and (limit <= 0 or limit >= num_blocks):
             return every, None
         if global_outputs is None:
