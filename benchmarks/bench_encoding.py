@@ -18,20 +18,8 @@ import torch
 from nerfstudio.field_components.encodings import HashEncoding
 from torch import Tensor, nn
 
+from scalar_nerfstudio.benchmarking.machine import fwd_bwd_seconds
 from scalar_nerfstudio.encodings import HashGridEncoding
-from scalar_nerfstudio.engine.timing import median_seconds
-
-
-def time_fwd_bwd(module: nn.Module, positions: Tensor, upstream: Tensor, warmup: int, repeats: int) -> float:
-    """Median seconds of one ``forward`` + ``backward`` (table gradient) of ``module`` on ``positions``."""
-    params = [p for p in module.parameters() if p.requires_grad]
-
-    def step() -> None:
-        for p in params:
-            p.grad = None
-        module(positions).backward(upstream)
-
-    return median_seconds(step, repeats, warmup)
 
 
 def build_modules(features: int, log2_hashmap_size: int, max_resolution: int) -> dict[str, nn.Module]:
@@ -86,7 +74,7 @@ def main() -> None:
             rates: dict[str, float] = {}
             for name in names:
                 baseline = name == "ns-torch"
-                seconds = time_fwd_bwd(
+                seconds = fwd_bwd_seconds(
                     modules[name],
                     positions,
                     upstream,

@@ -2,7 +2,9 @@
 
 Each method trains in its own process for the same wall-clock budget on the same scene and
 split, then renders the eval views. Printed and written as JSON: steps, training rays/s,
-held-out PSNR / SSIM, render time per image, and the mean-training-image baseline. Each
+held-out PSNR / SSIM, render time per image, the mean-training-image baseline, and the
+machine's speed before and after the runs (``benchmarking/machine.py``: absolute figures move with
+it, ratios within one run much less). Each
 trained model is also scored with the other near-plane rule: nerfstudio's models start
 evaluation rays at the camera (near plane reset to 0), scalar-nerf keeps the training near plane.
 
@@ -141,7 +143,12 @@ def main() -> None:
         return
     settings = parse_settings(args.scalar_set)  # a malformed setting is refused before anything trains
     args.workdir.mkdir(parents=True, exist_ok=True)
+    from scalar_nerfstudio.benchmarking.machine import hash_grid_speed
+
+    probe = {"before": hash_grid_speed()}
+    print(f"[{time.strftime('%H:%M:%S')}] machine probe: {probe['before']:.2f} M points/s (hash grid fwd + bwd, 2 threads)", flush=True)
     results: List[Dict] = [run_method(m, args, args.workdir, settings) for m in args.methods]
+    probe["after"] = hash_grid_speed()
     baseline = mean_image_baseline(args.data, args.downscale)
 
     print(f"\nscene {args.data.name}, downscale {args.downscale}, eval every 8th image, budget {args.minutes} min, mean-image baseline {baseline:.2f} dB")
@@ -151,6 +158,8 @@ def main() -> None:
         rule = "near plane reset to 0" if other["reset_near_plane"] else f"near plane kept at {r['near_plane']}"
         print(f"{r['method']:<14}{r['steps']:>7}{r['train_seconds']:>9.0f}{r['train_rays_per_sec']:>10.0f}{r['psnr']:>8.2f}{r['ssim']:>7.3f}{r['render_ms_per_image']:>15.0f}"
               f"   {other['psnr']:.2f} / {other['ssim']:.3f} ({rule})")
+    print(f"machine probe (hash grid fwd + bwd, 2^18 points, F=4, 2 threads; 2.8 on docs/benchmarks.md's fastest machine): "
+          f"{probe['before']:.2f} M points/s before the runs, {probe['after']:.2f} after")
     by_name = {r["method"]: r for r in results}
     if {"scalar-nerf", "nerfacto"} <= by_name.keys():
         ours, peer = by_name["scalar-nerf"], by_name["nerfacto"]
@@ -159,7 +168,8 @@ def main() -> None:
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps({"scene": str(args.data.name), "downscale": args.downscale, "minutes": args.minutes,
-                                         "mean_image_psnr": baseline, "results": results}, indent=2))
+                                         "mean_image_psnr": baseline, "machine_probe_mpts_per_s": probe,
+                                         "results": results}, indent=2))
 
 
 if __name__ == "__main__":

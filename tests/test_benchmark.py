@@ -272,3 +272,20 @@ def test_bad_benchmark_options_are_refused_before_anything_is_written(tmp_path: 
         with pytest.raises(SystemExit, match=message):
             prepare(config)
         assert not output.exists()
+
+
+def test_the_machine_probe_measures_the_hash_grid_and_restores_the_thread_count() -> None:
+    """The training benchmark prints the machine's speed before and after its runs (its absolute figures
+    move with it): a positive, finite rate, measured without leaving torch's thread count changed."""
+    import math
+
+    import torch
+
+    from scalar_nerfstudio.benchmarking.machine import hash_grid_speed
+
+    threads = torch.get_num_threads()
+    rate = hash_grid_speed(num_points=4096, log2_hashmap_size=12, threads=1, warmup=0, repeats=2)
+    assert math.isfinite(rate) and rate > 0
+    assert torch.get_num_threads() == threads
+    with pytest.raises(ValueError, match="num_points >= 1"):
+        hash_grid_speed(num_points=0)
