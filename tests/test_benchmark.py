@@ -51,6 +51,9 @@ def test_quick_benchmark_end_to_end(tmp_path: Path) -> None:
         assert row["render_ms_per_image"] > 0 and row["peak_rss_mib"] > 100 and row["train_rays_per_s"] > 0
     table = (output / "results.md").read_text()
     assert "| SCALAR-NeRF (blocks + global fusion) | global | 32 |" in table
+    # the machine's speed around the runs, so that absolute times can be read against it
+    probe = report["machine_probe_mpts_per_s"]
+    assert probe["before"] > 0 and probe["after"] > 0 and "hash-grid probe" in report["machine"] and "hash-grid probe" in table
     # equal wall-clock with K workers: the global phase plus the slower of the 2 blocks, timed phase by phase
     block_s = scalar["block_train_s"]
     assert set(block_s) == {"0", "1"} and all(t > 0 for t in block_s.values())

@@ -261,15 +261,22 @@ def _write(output_dir: Path, config: BenchmarkConfig, report: Dict[str, Any]) ->
     plots(report["results"], report["rows"], output_dir, config.log2_table)
 
 
-def write_report(config: BenchmarkConfig, results: Dict[str, Dict[str, Any]], notes: Dict[str, str], command: str, started: float) -> Dict[str, Any]:
+def write_report(
+    config: BenchmarkConfig, results: Dict[str, Dict[str, Any]], notes: Dict[str, str], command: str, started: float,
+    machine_probe: Optional[Dict[str, float]] = None,
+) -> Dict[str, Any]:
     """The report of a benchmark run (``started``: ``time.time()`` when its variants started), written
-    to ``config.output_dir``; returns it."""
+    to ``config.output_dir``; returns it. ``machine_probe``: the machine's speed before and after the
+    runs (M points/s, :func:`.machine.hash_grid_speed`), shown on the report's machine line."""
     table = rows(results, notes, config.log2_table)
     machine = describe_machine()
+    if machine_probe is not None:
+        machine += (f"; hash-grid probe {machine_probe['before']:.2f} M points/s before the runs, "
+                    f"{machine_probe['after']:.2f} after (absolute times move with it)")
     report = {
         "command": command, "machine": machine, "config": {k: str(v) if isinstance(v, Path) else v for k, v in asdict(config).items()},
         "notes": notes, "rows": table, "results": results, "wall_clock_s": time.time() - started,
-        "decoder_width": decoder_width_used(config),
+        "decoder_width": decoder_width_used(config), "machine_probe_mpts_per_s": machine_probe,
     }
     _write(config.output_dir, config, report)
     return report

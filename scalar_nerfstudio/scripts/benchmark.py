@@ -11,7 +11,8 @@ Equal budgets: every SCALAR/NGP variant trains ``G + K B`` steps of the same ray
 trains for the same wall-clock as ``scalar``. Training time excludes evaluation. PSNR / SSIM (and
 LPIPS when its weights are available offline) are measured on the eval split (every 8th image)
 every ``eval_every`` steps. Written to ``--output-dir``: results.json, results.md, and
-psnr_vs_time.png, psnr_vs_render_time.png, psnr_vs_parameters.png.
+psnr_vs_time.png, psnr_vs_render_time.png, psnr_vs_parameters.png. The machine line of the report
+carries the machine's speed before and after the runs (:mod:`scalar_nerfstudio.benchmarking.machine`).
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from typing import Any, Dict
 
 import tyro
 
+from scalar_nerfstudio.benchmarking.machine import hash_grid_speed
 from scalar_nerfstudio.benchmarking.report import results_table_text, rewrite_report, write_report
 from scalar_nerfstudio.benchmarking.schedule import prepare, run_variants
 from scalar_nerfstudio.benchmarking.variants import BenchmarkConfig, plan
@@ -37,9 +39,13 @@ def main(config: BenchmarkConfig) -> Dict[str, Any]:
         print(results_table_text(output_dir))
         return report
     variants, notes = prepare(config)
+    # the machine's speed around the runs (--quick: a small probe, only to exercise the harness)
+    probe_size = {"num_points": 1 << 14, "log2_hashmap_size": 14, "repeats": 2} if config.quick else {}
+    machine_probe = {"before": hash_grid_speed(**probe_size)}
     started = time.time()
     results = run_variants(config, variants)
-    report = write_report(config, results, notes, command, started)
+    machine_probe["after"] = hash_grid_speed(**probe_size)
+    report = write_report(config, results, notes, command, started, machine_probe)
     print(results_table_text(output_dir))
     print(f"written: {output_dir / 'results.md'}, results.json and 3 PNG plots ({(time.time() - started) / 60:.1f} min)")
     return report
