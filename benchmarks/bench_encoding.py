@@ -16,7 +16,7 @@ import os
 
 import torch
 from nerfstudio.field_components.encodings import HashEncoding
-from torch import Tensor, nn
+from torch import nn
 
 from scalar_nerfstudio.benchmarking.machine import fwd_bwd_seconds
 from scalar_nerfstudio.encodings import HashGridEncoding
