@@ -17,6 +17,7 @@ dies, so this benchmark replaces LPIPS by a stub for nerfacto and reports no LPI
 from __future__ import annotations
 
 import argparse
+import ast
 import json
 import subprocess
 import sys
@@ -27,7 +28,8 @@ from typing import Dict, List
 
 def parse_settings(items: List[str]) -> Dict[str, object]:
     """``["pipeline.model.occupancy_resolution=128", ...]`` -> {dotted name: value} (values read as JSON
-    where they parse, else kept as strings)."""
+    or as Python literals where they parse, so ``false`` and ``False`` are both the boolean; anything
+    else is kept as a string)."""
     settings: Dict[str, object] = {}
     for item in items:
         name, sep, text = item.partition("=")
@@ -36,7 +38,10 @@ def parse_settings(items: List[str]) -> Dict[str, object]:
         try:
             settings[name] = json.loads(text)
         except json.JSONDecodeError:
-            settings[name] = text
+            try:
+                settings[name] = ast.literal_eval(text)
+            except (ValueError, SyntaxError):
+                settings[name] = text
     return settings
 
 

@@ -23,7 +23,7 @@ if TYPE_CHECKING:
     from torch._ops import _OpNamespace
 
 EXTENSION_NAME = "scalar_nerf_hash_grid"
-SOURCES = [Path(__file__).resolve().parent.parent / "csrc" / name for name in ("hash_grid.cpp", "sampling.cpp")]
+SOURCES = [Path(__file__).resolve().parent.parent / "csrc" / name for name in ("hash_grid.cpp", "sampling.cpp", "mlp.cpp")]
 SAMPLING_NAMESPACE = "scalar_nerf_sampling"
 
 _logger = logging.getLogger(__name__)

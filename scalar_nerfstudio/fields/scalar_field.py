@@ -17,6 +17,7 @@ from torch import Tensor, nn
 
 from scalar_nerfstudio.encodings import HashGridEncoding, _cpp
 from scalar_nerfstudio.encodings.hash_grid import level_corners, sanitise_positions
+from scalar_nerfstudio.fields.fused_mlp import fused_mlp, fused_mlp_available
 
 # Values beyond this magnitude are clamped before contraction: far enough to contract to the
 # boundary (2 - 1e-30 == 2 in float32) and small enough that squaring cannot overflow float32.
@@ -172,15 +173,25 @@ class Decoder(nn.Module):
         geo_feat_dim: features passed from the density head to the colour head.
         direction_dim: size of the encoded view direction.
         appearance_dim: size of the per-image appearance embedding.
+        fused_training: run the layers with gradients on the CPU under bfloat16 autocast through
+            :func:`fused_mlp` (csrc/mlp.cpp) where this CPU has AVX512-BF16.
     """
 
     def __init__(
-        self, in_dim: int, hidden_dim: int, geo_feat_dim: int, direction_dim: int, appearance_dim: int, density_bias: float
+        self,
+        in_dim: int,
+        hidden_dim: int,
+        geo_feat_dim: int,
+        direction_dim: int,
+        appearance_dim: int,
+        density_bias: float,
+        fused_training: bool = True,
     ) -> None:
         super().__init__()
         self.geo_feat_dim = geo_feat_dim
         self.density_bias = density_bias
         self.fused_cpu_inference = fused_linear_available()
+        self.fused_cpu_training = fused_training and fused_mlp_available()
         self.density_mlp = nn.Sequential(
             nn.Linear(in_dim, hidden_dim), nn.ReLU(inplace=True), nn.Linear(hidden_dim, 1 + geo_feat_dim)
         )
@@ -204,12 +215,25 @@ class Decoder(nn.Module):
 
     def colour(self, geo_features: Tensor, encoded_directions: Tensor, appearance: Tensor) -> Tensor:
         """[N, geo], [N, dir], [N, app] -> [N, 3] float32 RGB in [0, 1]."""
-        inputs = torch.cat([geo_features, encoded_directions.to(geo_features.dtype), appearance.to(geo_features.dtype)], dim=-1)
+        dtype = torch.bfloat16 if self._fused_training_applies(geo_features) else geo_features.dtype
+        inputs = torch.cat([geo_features.to(dtype), encoded_directions.to(dtype), appearance.to(dtype)], dim=-1)
         return torch.sigmoid(self._mlp(self.colour_mlp, inputs).float())
 
+    def _fused_training_applies(self, inputs: Tensor) -> bool:
+        """Whether :meth:`_mlp` takes the fused bfloat16 training kernels for ``inputs``."""
+        return (
+            self.fused_cpu_training
+            and torch.is_grad_enabled()
+            and inputs.device.type == "cpu"
+            and cpu_autocast_dtype() == torch.bfloat16
+        )
+
     def _mlp(self, mlp: nn.Sequential, inputs: Tensor) -> Tensor:
-        """``mlp(inputs)``; without autograd on the CPU, through :func:`run_mlp_fused` in the precision
-        autocast asks for (float32 outside autocast)."""
+        """``mlp(inputs)``. On the CPU under bfloat16 autocast with autograd, through :func:`fused_mlp`
+        (float32 result) where enabled; without autograd on the CPU, through :func:`run_mlp_fused` in
+        the precision autocast asks for (float32 outside autocast)."""
+        if self._fused_training_applies(inputs):
+            return fused_mlp(mlp, inputs)
         if not self.fused_cpu_inference or torch.is_grad_enabled() or inputs.device.type != "cpu":
             return mlp(inputs)
         return run_mlp_fused(mlp, inputs, cpu_autocast_dtype() or inputs.dtype)
@@ -249,6 +273,10 @@ class ScalarFieldConfig(InstantiateConfig):
     """Matrix products of the decoder on CPU. "auto": bfloat16 where the CPU multiplies bfloat16
     natively (about 2x faster decoder), else float32. Densities, colours, the hash grid and volume
     rendering stay float32. On CUDA the trainer's mixed precision decides instead."""
+    fused_decoder: bool = True
+    """Train the bfloat16 decoder on the CPU through the fused C++ kernels of csrc/mlp.cpp (one pass
+    per layer for forward and for backward, AVX512-BF16) where the CPU has AVX512-BF16; ``False``, or
+    a CPU without it, uses autograd's layer-by-layer bfloat16 products."""
     geo_feat_dim: int = 15
     """Features from the density head to the colour head."""
     appearance_dim: int = 8
@@ -287,6 +315,7 @@ class ScalarField(nn.Module):
             direction_dim=self.direction_encoding.get_out_dim(),
             appearance_dim=config.appearance_dim,
             density_bias=config.density_bias,
+            fused_training=config.fused_decoder,
         )
         self.appearance = nn.Embedding(max(num_images, 1), config.appearance_dim)
         nn.init.normal_(self.appearance.weight, std=0.01)
