@@ -292,3 +292,24 @@ def test_the_machine_probe_measures_the_hash_grid_and_restores_the_thread_count(
     assert torch.get_num_threads() == threads
     with pytest.raises(ValueError, match="num_points >= 1"):
         hash_grid_speed(num_points=0)
+
+
+def test_training_benchmark_settings_read_booleans_numbers_and_strings() -> None:
+    """``bench_training.py --scalar-set``: ``False`` and ``false`` are the boolean (``False`` used to
+    stay the string 'False', which a config reads as true), numbers are numbers, other text stays text,
+    and a setting without ``=`` is refused."""
+    import importlib.util
+
+    path = Path(__file__).resolve().parent.parent / "benchmarks" / "bench_training.py"
+    spec = importlib.util.spec_from_file_location("bench_training", path)
+    assert spec is not None and spec.loader is not None
+    bench_training = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench_training)
+    settings = bench_training.parse_settings(
+        ["a.flag=False", "b.flag=false", "c.flag=True", "d.size=128", "e.rate=2e-3", "f.name=auto", "g.pair=(1, 2)"]
+    )
+    assert settings == {
+        "a.flag": False, "b.flag": False, "c.flag": True, "d.size": 128, "e.rate": 2e-3, "f.name": "auto", "g.pair": (1, 2)
+    }
+    with pytest.raises(SystemExit, match="NAME=VALUE"):
+        bench_training.parse_settings(["pipeline.model.field.fused_decoder"])
