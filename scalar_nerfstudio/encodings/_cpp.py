@@ -1,11 +1,12 @@
 """Lazy, once-per-process JIT build of the C++/OpenMP CPU kernels.
 
-The kernels (``scalar_nerfstudio/csrc/hash_grid.cpp`` and ``csrc/sampling.cpp``) are compiled
+The kernels (``scalar_nerfstudio/csrc/hash_grid.cpp``, ``csrc/sampling.cpp`` and ``csrc/mlp.cpp``) are compiled
 into one extension with :func:`torch.utils.cpp_extension.load` on first use (~20 s; cached
 afterwards in torch's extension directory, ``$TORCH_EXTENSIONS_DIR`` or
 ``~/.cache/torch_extensions``). It registers the ops ``torch.ops.scalar_nerf_hash_grid.forward``
 and ``.backward`` (the hash grid), and ``torch.ops.scalar_nerf_sampling.unit_positions`` and
-``.worth_evaluating`` (ray samples and the occupancy test).
+``.worth_evaluating`` (ray samples and the occupancy test), and ``torch.ops.scalar_nerf_mlp.forward``,
+``.backward`` and ``.supported`` (the fused bfloat16 decoder, ``fields/fused_mlp.py``).
 If the build fails (no C++ compiler, no ninja, ...) one warning is logged and callers fall back
 to their pure-torch implementations.
 """
