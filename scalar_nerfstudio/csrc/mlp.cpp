@@ -33,6 +33,7 @@
 #include <algorithm>
 #include <cstdint>
 #include <cstring>
+#include <type_traits>
 #include <vector>
 
 #if defined(__x86_64__) && defined(__GNUC__)
@@ -87,18 +88,27 @@ MLP_TARGET void gemm_rows_ob(const int32_t* a32, int64_t a_stride, const int32_t
   }
 }
 
-// C [rows, out] (float32) = init + A [rows, 2 * kpairs] (bf16) x packed W; rows a multiple of 8.
-MLP_TARGET void gemm_rows(const int32_t* a32, int64_t a_stride, const int32_t* w32, int64_t out, int64_t kpairs,
-                          const float* init, float* c, int64_t rows) {
+// Calls f(std::integral_constant<int, OB>{}, ob0) for the output blocks of 16 columns taken up
+// to 4 at a time (OB of them starting at block ob0): the kernels keep OB blocks in registers.
+template <typename F>
+void for_block_groups(int64_t out, F&& f) {
   const int64_t blocks = out / 16;
   for (int64_t ob0 = 0; ob0 < blocks; ob0 += 4) {
     switch (std::min<int64_t>(4, blocks - ob0)) {
-      case 4: gemm_rows_ob<4>(a32, a_stride, w32, out, kpairs, init, ob0, c, out, rows); break;
-      case 3: gemm_rows_ob<3>(a32, a_stride, w32, out, kpairs, init, ob0, c, out, rows); break;
-      case 2: gemm_rows_ob<2>(a32, a_stride, w32, out, kpairs, init, ob0, c, out, rows); break;
-      default: gemm_rows_ob<1>(a32, a_stride, w32, out, kpairs, init, ob0, c, out, rows); break;
+      case 4: f(std::integral_constant<int, 4>{}, ob0); break;
+      case 3: f(std::integral_constant<int, 3>{}, ob0); break;
+      case 2: f(std::integral_constant<int, 2>{}, ob0); break;
+      default: f(std::integral_constant<int, 1>{}, ob0); break;
     }
   }
+}
+
+// C [rows, out] (float32) = init + A [rows, 2 * kpairs] (bf16) x packed W; rows a multiple of 8.
+MLP_TARGET void gemm_rows(const int32_t* a32, int64_t a_stride, const int32_t* w32, int64_t out, int64_t kpairs,
+                          const float* init, float* c, int64_t rows) {
+  for_block_groups(out, [&](auto ob, int64_t ob0) {
+    gemm_rows_ob<decltype(ob)::value>(a32, a_stride, w32, out, kpairs, init, ob0, c, out, rows);
+  });
 }
 
 MLP_TARGET inline void store_bf16(uint16_t* dst, __m512 v) {
@@ -142,15 +152,9 @@ MLP_TARGET void weight_grad_ob(const int32_t* z32, const int32_t* a32, int64_t p
 
 MLP_TARGET void weight_grad(const int32_t* z32, const int32_t* a32, int64_t pairs, int64_t out, int64_t in,
                             float* grad_wt) {
-  const int64_t blocks = out / 16;
-  for (int64_t ob0 = 0; ob0 < blocks; ob0 += 4) {
-    switch (std::min<int64_t>(4, blocks - ob0)) {
-      case 4: weight_grad_ob<4>(z32, a32, pairs, out, in, ob0, grad_wt); break;
-      case 3: weight_grad_ob<3>(z32, a32, pairs, out, in, ob0, grad_wt); break;
-      case 2: weight_grad_ob<2>(z32, a32, pairs, out, in, ob0, grad_wt); break;
-      default: weight_grad_ob<1>(z32, a32, pairs, out, in, ob0, grad_wt); break;
-    }
-  }
+  for_block_groups(out, [&](auto ob, int64_t ob0) {
+    weight_grad_ob<decltype(ob)::value>(z32, a32, pairs, out, in, ob0, grad_wt);
+  });
 }
 
 // One tile of the forward: activations[0] rows [r0, r0 + kTile) from the input, then every layer.

@@ -13,6 +13,7 @@ which is what CPU autocast's bfloat16 products compute too.
 
 from __future__ import annotations
 
+import functools
 from typing import Optional
 
 import torch
@@ -27,8 +28,11 @@ def _padded(width: int) -> int:
     return -(-width // _WIDTH_MULTIPLE) * _WIDTH_MULTIPLE
 
 
+@functools.lru_cache(maxsize=None)
 def fused_mlp_available() -> bool:
-    """Whether :func:`fused_mlp` runs here: the C++ extension builds and the CPU has AVX512-BF16."""
+    """Whether :func:`fused_mlp` runs here: the C++ extension builds and the CPU has AVX512-BF16.
+    Answered once per process (the extension is built at most once; the CPU does not change), so
+    :func:`fused_mlp` can ask on every call."""
     if load_extension() is None or not hasattr(torch.ops, "scalar_nerf_mlp"):
         return False
     try:
@@ -53,9 +57,9 @@ def linear_layers(mlp: nn.Sequential) -> tuple[list[nn.Linear], list[bool]]:
         elif isinstance(module, nn.ReLU) and layers and not relu[-1]:
             relu[-1] = True
         else:
-            raise TypeError(f"fused_mlp takes Linear layers each optionally followed by one ReLU, got {mlp}")
+            raise TypeError(f"expected Linear layers each optionally followed by one ReLU, got {mlp}")
     if not layers or relu[-1]:
-        raise TypeError(f"fused_mlp needs at least one Linear layer and no ReLU after the last: {mlp}")
+        raise TypeError(f"expected at least one Linear layer and no ReLU after the last: {mlp}")
     return layers, relu
 
 
