@@ -45,10 +45,13 @@ def parse_settings(items: List[str]) -> Dict[str, object]:
     return settings
 
 
-def train_one(method: str, data: str, downscale: int, seconds: float, steps: int, out: Path, settings: Dict[str, object]) -> None:
-    """Train ``method`` for ``seconds`` of wall clock (or ``steps``), evaluate, write ``out`` (JSON).
+def train_one(method: str, data: str, downscale: int, seconds: float, steps: int, out: Path, settings: Dict[str, object],
+              device: str = "cpu") -> None:
+    """Train ``method`` for ``seconds`` of wall clock (or ``steps``) on ``device`` ("cpu" or "cuda"),
+    evaluate, write ``out`` (JSON).
 
     Runs in a process of its own (``--worker``), so that each method starts from a fresh process.
+    On "cuda" both methods train with nerfstudio's mixed precision (fp16 autocast), as ``ns-train`` does there.
     """
     import torch
 
@@ -56,8 +59,8 @@ def train_one(method: str, data: str, downscale: int, seconds: float, steps: int
     from scalar_nerfstudio.benchmarking.runner import trainer_config
 
     # the benchmark runner's set-up (every 8th image held out, no evaluation or checkpoints while
-    # training; LPIPS stubbed out for nerfacto, whose weights would be downloaded), on the CPU
-    overrides = {"machine.device_type": "cpu", "mixed_precision": False, "pipeline.datamanager.train_num_rays_per_batch": 4096}
+    # training; LPIPS stubbed out for nerfacto, whose weights would be downloaded), on ``device``
+    overrides = {"machine.device_type": device, "mixed_precision": device == "cuda", "pipeline.datamanager.train_num_rays_per_batch": 4096}
     if method == "scalar-nerf":
         overrides["max_num_iterations"] = steps
         overrides.update(settings)
@@ -91,6 +94,7 @@ def train_one(method: str, data: str, downscale: int, seconds: float, steps: int
         "render_ms_per_image": render_ms,
         "eval_images": num_eval,
         "threads": torch.get_num_threads(),
+        "device": torch.cuda.get_device_name() if device == "cuda" else "cpu",
         "near_plane": collider.near_plane,
         "reset_near_plane": collider.reset_near_plane,
         "settings": settings if method == "scalar-nerf" else {},
@@ -122,8 +126,8 @@ def run_method(method: str, args: argparse.Namespace, workdir: Path, settings: D
     out = workdir / f"{method}.json"
     steps = args.scalar_steps if method == "scalar-nerf" else 100000
     command = [sys.executable, str(Path(__file__).resolve()), "--worker", method, str(args.data), str(args.downscale),
-               str(args.minutes * 60), str(steps), str(out), json.dumps(settings)]
-    print(f"[{time.strftime('%H:%M:%S')}] training {method} for {args.minutes} min ...", flush=True)
+               str(args.minutes * 60), str(steps), str(out), json.dumps(settings), args.device]
+    print(f"[{time.strftime('%H:%M:%S')}] training {method} on {args.device} for {args.minutes} min ...", flush=True)
     subprocess.run(command, check=True, stdout=subprocess.DEVNULL if not args.verbose else None)
     return json.loads(out.read_text())
 
@@ -139,14 +143,21 @@ def main() -> None:
     parser.add_argument("--json", type=Path, default=None, help="also write the results here")
     parser.add_argument("--scalar-set", nargs="*", default=[], metavar="NAME=VALUE",
                         help="trainer-config settings for scalar-nerf, e.g. pipeline.model.occupancy_resolution=128")
+    parser.add_argument("--device", choices=["cpu", "cuda"], default="cpu",
+                        help="where both methods train (cuda: with nerfstudio's mixed precision, as ns-train there)")
     parser.add_argument("--verbose", action="store_true")
-    parser.add_argument("--worker", nargs=7, help=argparse.SUPPRESS)  # one method, in its own process (run_method)
+    parser.add_argument("--worker", nargs=8, help=argparse.SUPPRESS)  # one method, in its own process (run_method)
     args = parser.parse_args()
     if args.worker:
-        method, data, downscale, seconds, steps, out, settings = args.worker
-        train_one(method, data, int(downscale), float(seconds), int(steps), Path(out), json.loads(settings))
+        method, data, downscale, seconds, steps, out, settings, device = args.worker
+        train_one(method, data, int(downscale), float(seconds), int(steps), Path(out), json.loads(settings), device)
         return
     settings = parse_settings(args.scalar_set)  # a malformed setting is refused before anything trains
+    if args.device == "cuda":
+        import torch
+
+        if not torch.cuda.is_available():
+            raise SystemExit("bench_training: --device cuda, but torch sees no CUDA device on this machine")
     args.workdir.mkdir(parents=True, exist_ok=True)
     from scalar_nerfstudio.benchmarking.machine import hash_grid_speed
 
@@ -156,7 +167,7 @@ def main() -> None:
     probe["after"] = hash_grid_speed()
     baseline = mean_image_baseline(args.data, args.downscale)
 
-    print(f"\nscene {args.data.name}, downscale {args.downscale}, eval every 8th image, budget {args.minutes} min, mean-image baseline {baseline:.2f} dB")
+    print(f"\ndevice {results[0].get('device', args.device)}; scene {args.data.name}, downscale {args.downscale}, eval every 8th image, budget {args.minutes} min, mean-image baseline {baseline:.2f} dB")
     print(f"{'method':<14}{'steps':>7}{'train s':>9}{'rays/s':>10}{'PSNR':>8}{'SSIM':>7}{'render ms/img':>15}   PSNR / SSIM with the other near-plane rule")
     for r in results:
         other = r["other_near_plane"]
@@ -172,7 +183,7 @@ def main() -> None:
               f"{ours['psnr'] - peer['psnr']:+.2f} dB PSNR, {peer['render_ms_per_image'] / ours['render_ms_per_image']:.1f}x faster render")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({"scene": str(args.data.name), "downscale": args.downscale, "minutes": args.minutes,
+        args.json.write_text(json.dumps({"device": args.device, "scene": str(args.data.name), "downscale": args.downscale, "minutes": args.minutes,
                                          "mean_image_psnr": baseline, "machine_probe_mpts_per_s": probe,
                                          "results": results}, indent=2))
 

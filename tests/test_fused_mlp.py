@@ -181,3 +181,18 @@ def test_without_autocast_or_without_autograd_the_field_does_not_take_the_traini
     with torch.no_grad():
         _field(True).density_at_unit(points)
     assert not calls
+
+
+def test_the_kernel_rejects_bad_inputs_with_a_message_that_names_the_sizes() -> None:
+    """A bad call is a RuntimeError naming the numbers involved, not a crash (csrc/check.h)."""
+    from scalar_nerfstudio.fields.fused_mlp import pack_weights
+
+    weight = torch.randn(16, 32)
+    forward_weight, _ = pack_weights(weight)
+    bias = torch.zeros(16)
+    with pytest.raises(RuntimeError, match="input has 48 columns, the first layer takes 32"):
+        torch.ops.scalar_nerf_mlp.forward(torch.randn(4, 48), [forward_weight], [bias], [0], 16)
+    with pytest.raises(RuntimeError, match="out_dim 17 out of range"):
+        torch.ops.scalar_nerf_mlp.forward(torch.randn(4, 32), [forward_weight], [bias], [0], 17)
+    with pytest.raises(RuntimeError, match=r"packed weight 0 must be .*got \[16, 16, 2\] Float"):
+        torch.ops.scalar_nerf_mlp.forward(torch.randn(4, 32), [forward_weight.float()], [bias], [0], 16)

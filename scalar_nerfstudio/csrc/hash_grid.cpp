@@ -30,6 +30,8 @@
 #include <c10/util/accumulate.h>
 #include <torch/library.h>
 
+#include "check.h"
+
 #include <omp.h>
 #ifdef __linux__
 #include <sys/mman.h>
@@ -229,7 +231,7 @@ at::Tensor empty_huge_paged(at::IntArrayRef sizes, const at::TensorOptions& opti
   if (nbytes >= kHugePage) {
     const size_t rounded = (nbytes + kHugePage - 1) & ~(kHugePage - 1);
     void* data = std::aligned_alloc(kHugePage, rounded);
-    TORCH_CHECK(data != nullptr, "hash_grid cpp: out of memory allocating ", rounded, " bytes");
+    SCALAR_CHECK(data != nullptr, "hash_grid cpp: out of memory allocating ", rounded, " bytes");
     madvise(data, rounded, MADV_HUGEPAGE);  // advisory only; failure just means 4 KiB pages
     return at::from_blob(data, sizes, [](void* p) { std::free(p); }, options);
   }
@@ -241,17 +243,17 @@ at::Tensor empty_huge_paged(at::IntArrayRef sizes, const at::TensorOptions& opti
 std::vector<Level> make_levels(at::IntArrayRef level_offsets, at::IntArrayRef resolutions, int64_t hashmap_size,
                                int64_t table_rows) {
   const int64_t num_levels = static_cast<int64_t>(resolutions.size());
-  TORCH_CHECK(num_levels >= 1, "hash_grid cpp: need at least one level");
-  TORCH_CHECK(static_cast<int64_t>(level_offsets.size()) == num_levels + 1,
+  SCALAR_CHECK(num_levels >= 1, "hash_grid cpp: need at least one level");
+  SCALAR_CHECK(static_cast<int64_t>(level_offsets.size()) == num_levels + 1,
               "hash_grid cpp: level_offsets must have num_levels + 1 entries");
-  TORCH_CHECK(hashmap_size >= 1 && hashmap_size <= (int64_t{1} << 31) && (hashmap_size & (hashmap_size - 1)) == 0,
+  SCALAR_CHECK(hashmap_size >= 1 && hashmap_size <= (int64_t{1} << 31) && (hashmap_size & (hashmap_size - 1)) == 0,
               "hash_grid cpp: hashmap_size must be a power of two <= 2^31, got ", hashmap_size);
-  TORCH_CHECK(level_offsets[0] == 0 && level_offsets[num_levels] == table_rows,
+  SCALAR_CHECK(level_offsets[0] == 0 && level_offsets[num_levels] == table_rows,
               "hash_grid cpp: level_offsets must start at 0 and end at the table's row count (", table_rows, ")");
   std::vector<Level> levels(num_levels);
   for (int64_t l = 0; l < num_levels; ++l) {
     const int64_t res = resolutions[l];
-    TORCH_CHECK(res >= 1 && res < (int64_t{1} << 24), "hash_grid cpp: resolution must be in [1, 2^24), got ", res);
+    SCALAR_CHECK(res >= 1 && res < (int64_t{1} << 24), "hash_grid cpp: resolution must be in [1, 2^24), got ", res);
     const int64_t verts = (res + 1) * (res + 1) * (res + 1);
     Level& lv = levels[l];
     lv.scale = static_cast<float>(res);
@@ -262,20 +264,20 @@ std::vector<Level> make_levels(at::IntArrayRef level_offsets, at::IntArrayRef re
     lv.offset = level_offsets[l];
     lv.rows = level_offsets[l + 1] - level_offsets[l];
     const int64_t expected = lv.dense ? verts : hashmap_size;
-    TORCH_CHECK(lv.rows == expected, "hash_grid cpp: level ", l, " has ", lv.rows, " rows, expected ", expected);
+    SCALAR_CHECK(lv.rows == expected, "hash_grid cpp: level ", l, " has ", lv.rows, " rows, expected ", expected);
   }
   return levels;
 }
 
 void check_float_cpu(const at::Tensor& t, const char* name) {
-  TORCH_CHECK(t.device().is_cpu(), "hash_grid cpp: ", name, " must be a CPU tensor, got ", t.device());
-  TORCH_CHECK(t.scalar_type() == at::kFloat, "hash_grid cpp: ", name, " must be float32, got ", t.scalar_type());
-  TORCH_CHECK(t.dim() == 2, "hash_grid cpp: ", name, " must be 2-D, got shape ", t.sizes());
-  TORCH_CHECK(t.is_contiguous(), "hash_grid cpp: ", name, " must be contiguous");
+  SCALAR_CHECK(t.device().is_cpu(), "hash_grid cpp: ", name, " must be a CPU tensor, got ", t.device());
+  SCALAR_CHECK(t.scalar_type() == at::kFloat, "hash_grid cpp: ", name, " must be float32, got ", t.scalar_type());
+  SCALAR_CHECK(t.dim() == 2, "hash_grid cpp: ", name, " must be 2-D, got shape ", t.sizes());
+  SCALAR_CHECK(t.is_contiguous(), "hash_grid cpp: ", name, " must be contiguous");
 }
 
 void check_features(int64_t f) {
-  TORCH_CHECK(f == 1 || f == 2 || f == 4 || f == 8, "hash_grid cpp: features_per_level must be 1, 2, 4 or 8, got ",
+  SCALAR_CHECK(f == 1 || f == 2 || f == 4 || f == 8, "hash_grid cpp: features_per_level must be 1, 2, 4 or 8, got ",
               f);
 }
 
@@ -288,7 +290,7 @@ int num_threads_for(int64_t n) {
 at::Tensor hash_grid_forward(const at::Tensor& positions, const at::Tensor& table, at::IntArrayRef level_offsets,
                              at::IntArrayRef resolutions, int64_t hashmap_size) {
   check_float_cpu(positions, "positions");
-  TORCH_CHECK(positions.size(1) == 3, "hash_grid cpp: positions must be [N, 3], got ", positions.sizes());
+  SCALAR_CHECK(positions.size(1) == 3, "hash_grid cpp: positions must be [N, 3], got ", positions.sizes());
   check_float_cpu(table, "table");
   const int64_t f = table.size(1);
   check_features(f);
@@ -313,14 +315,14 @@ at::Tensor hash_grid_forward(const at::Tensor& positions, const at::Tensor& tabl
 at::Tensor hash_grid_backward(const at::Tensor& grad_out, const at::Tensor& positions, at::IntArrayRef level_offsets,
                               at::IntArrayRef resolutions, int64_t hashmap_size, int64_t features_per_level) {
   check_float_cpu(positions, "positions");
-  TORCH_CHECK(positions.size(1) == 3, "hash_grid cpp: positions must be [N, 3], got ", positions.sizes());
+  SCALAR_CHECK(positions.size(1) == 3, "hash_grid cpp: positions must be [N, 3], got ", positions.sizes());
   check_float_cpu(grad_out, "grad_out");
   const int64_t f = features_per_level;
   check_features(f);
   const int64_t n = positions.size(0);
-  TORCH_CHECK(grad_out.size(0) == n && grad_out.size(1) == static_cast<int64_t>(resolutions.size()) * f,
+  SCALAR_CHECK(grad_out.size(0) == n && grad_out.size(1) == static_cast<int64_t>(resolutions.size()) * f,
               "hash_grid cpp: grad_out must be [N, num_levels * F], got ", grad_out.sizes());
-  TORCH_CHECK(!level_offsets.empty(), "hash_grid cpp: level_offsets must not be empty");
+  SCALAR_CHECK(!level_offsets.empty(), "hash_grid cpp: level_offsets must not be empty");
   const std::vector<Level> levels = make_levels(level_offsets, resolutions, hashmap_size, level_offsets.back());
   at::Tensor grad_table = empty_huge_paged({level_offsets.back(), f}, grad_out.options());
   grad_table.zero_();

@@ -30,6 +30,8 @@
 #include <omp.h>
 #include <torch/library.h>
 
+#include "check.h"
+
 #include <algorithm>
 #include <cstdint>
 #include <cstring>
@@ -278,7 +280,7 @@ bool supported() {
 #endif
 }
 
-void check(bool ok, const char* what) { TORCH_CHECK(ok, "scalar_nerf_mlp: ", what); }
+void check(bool ok, const char* what) { SCALAR_CHECK(ok, "scalar_nerf_mlp: ", what); }
 
 std::vector<Layer> check_layers(const std::vector<at::Tensor>& weights, const std::vector<int64_t>& relu, bool transposed) {
   check(!weights.empty(), "need at least one layer");
@@ -287,7 +289,7 @@ std::vector<Layer> check_layers(const std::vector<at::Tensor>& weights, const st
   std::vector<Layer> layers;
   for (size_t l = 0; l < weights.size(); ++l) {
     const at::Tensor& w = weights[l];
-    TORCH_CHECK(w.device().is_cpu() && w.scalar_type() == at::kBFloat16 && w.is_contiguous() && w.dim() == 3 &&
+    SCALAR_CHECK(w.device().is_cpu() && w.scalar_type() == at::kBFloat16 && w.is_contiguous() && w.dim() == 3 &&
                     w.size(2) == 2,
                 "scalar_nerf_mlp: packed weight ", l, " must be a contiguous CPU bfloat16 [P, W, 2] tensor, got ",
                 w.sizes(), " ", w.scalar_type());
@@ -295,11 +297,11 @@ std::vector<Layer> check_layers(const std::vector<at::Tensor>& weights, const st
     ly.in_padded = transposed ? w.size(1) : 2 * w.size(0);
     ly.out_padded = transposed ? 2 * w.size(0) : w.size(1);
     ly.relu = relu[l] != 0;
-    TORCH_CHECK(ly.in_padded % 16 == 0 && ly.out_padded % 16 == 0 && ly.in_padded > 0 && ly.out_padded > 0,
+    SCALAR_CHECK(ly.in_padded % 16 == 0 && ly.out_padded % 16 == 0 && ly.in_padded > 0 && ly.out_padded > 0,
                 "scalar_nerf_mlp: padded widths must be positive multiples of 16, layer ", l, " has ", ly.in_padded,
                 " -> ", ly.out_padded);
     if (l > 0)
-      TORCH_CHECK(ly.in_padded == layers.back().out_padded, "scalar_nerf_mlp: layer ", l, " takes ", ly.in_padded,
+      SCALAR_CHECK(ly.in_padded == layers.back().out_padded, "scalar_nerf_mlp: layer ", l, " takes ", ly.in_padded,
                   " inputs but layer ", l - 1, " gives ", layers.back().out_padded);
     layers.push_back(ly);
   }
@@ -315,18 +317,18 @@ std::vector<at::Tensor> forward(const at::Tensor& input, const std::vector<at::T
                                 const std::vector<at::Tensor>& biases, const std::vector<int64_t>& relu, int64_t out_dim) {
   check(supported(), "this CPU has no AVX512-BF16");
   const std::vector<Layer> layers = check_layers(weights, relu, false);
-  TORCH_CHECK(input.device().is_cpu() && input.is_contiguous() && input.dim() == 2 &&
+  SCALAR_CHECK(input.device().is_cpu() && input.is_contiguous() && input.dim() == 2 &&
                   (input.scalar_type() == at::kFloat || input.scalar_type() == at::kBFloat16),
               "scalar_nerf_mlp: input must be a contiguous CPU float32 or bfloat16 [N, K] tensor");
-  TORCH_CHECK(input.size(1) <= layers[0].in_padded, "scalar_nerf_mlp: input has ", input.size(1),
+  SCALAR_CHECK(input.size(1) <= layers[0].in_padded, "scalar_nerf_mlp: input has ", input.size(1),
               " columns, the first layer takes ", layers[0].in_padded);
-  TORCH_CHECK(out_dim >= 1 && out_dim <= layers.back().out_padded, "scalar_nerf_mlp: out_dim ", out_dim,
+  SCALAR_CHECK(out_dim >= 1 && out_dim <= layers.back().out_padded, "scalar_nerf_mlp: out_dim ", out_dim,
               " out of range");
   check(biases.size() == layers.size(), "one bias per layer");
   std::vector<const int32_t*> w32;
   std::vector<const float*> b32;
   for (size_t l = 0; l < layers.size(); ++l) {
-    TORCH_CHECK(biases[l].scalar_type() == at::kFloat && biases[l].is_contiguous() &&
+    SCALAR_CHECK(biases[l].scalar_type() == at::kFloat && biases[l].is_contiguous() &&
                     biases[l].numel() == layers[l].out_padded,
                 "scalar_nerf_mlp: bias ", l, " must be contiguous float32 with ", layers[l].out_padded, " values");
     w32.push_back(reinterpret_cast<const int32_t*>(weights[l].data_ptr<at::BFloat16>()));
@@ -369,7 +371,7 @@ std::vector<at::Tensor> backward(const at::Tensor& grad_out, const std::vector<a
                                  int64_t in_dim) {
   check(supported(), "this CPU has no AVX512-BF16");
   const std::vector<Layer> layers = check_layers(weights_t, relu, true);
-  TORCH_CHECK(grad_out.device().is_cpu() && grad_out.scalar_type() == at::kFloat && grad_out.is_contiguous() &&
+  SCALAR_CHECK(grad_out.device().is_cpu() && grad_out.scalar_type() == at::kFloat && grad_out.is_contiguous() &&
                   grad_out.dim() == 2 && grad_out.size(1) <= layers.back().out_padded,
               "scalar_nerf_mlp: grad_out must be a contiguous CPU float32 [N, out] tensor, got ", grad_out.sizes());
   check(activations.size() == layers.size(), "one activation per layer");
@@ -378,13 +380,13 @@ std::vector<at::Tensor> backward(const at::Tensor& grad_out, const std::vector<a
   std::vector<const uint16_t*> acts;
   for (size_t l = 0; l < layers.size(); ++l) {
     const at::Tensor& a = activations[l];
-    TORCH_CHECK(a.scalar_type() == at::kBFloat16 && a.is_contiguous() && a.dim() == 2 && a.size(0) == npad &&
+    SCALAR_CHECK(a.scalar_type() == at::kBFloat16 && a.is_contiguous() && a.dim() == 2 && a.size(0) == npad &&
                     a.size(1) == layers[l].in_padded,
                 "scalar_nerf_mlp: activation ", l, " must be bfloat16 [", npad, ", ", layers[l].in_padded, "], got ",
                 a.sizes());
     acts.push_back(reinterpret_cast<const uint16_t*>(a.data_ptr<at::BFloat16>()));
   }
-  TORCH_CHECK(in_dim >= 0 && in_dim <= layers[0].in_padded, "scalar_nerf_mlp: in_dim ", in_dim, " out of range");
+  SCALAR_CHECK(in_dim >= 0 && in_dim <= layers[0].in_padded, "scalar_nerf_mlp: in_dim ", in_dim, " out of range");
   std::vector<const int32_t*> w32;
   for (const at::Tensor& w : weights_t) w32.push_back(reinterpret_cast<const int32_t*>(w.data_ptr<at::BFloat16>()));
   const int64_t tiles = npad / kTile;

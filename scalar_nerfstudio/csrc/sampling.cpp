@@ -22,6 +22,8 @@
 #include <ATen/ops/empty.h>
 #include <torch/library.h>
 
+#include "check.h"
+
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
@@ -33,9 +35,9 @@ constexpr float kMaxCoordinate = 1e18f;
 constexpr int64_t kGrain = 8192;
 
 void check_cpu(const at::Tensor& t, const char* name, at::ScalarType type) {
-  TORCH_CHECK(t.device().is_cpu(), "scalar_nerf_sampling: ", name, " must be a CPU tensor, got ", t.device());
-  TORCH_CHECK(t.scalar_type() == type, "scalar_nerf_sampling: ", name, " must be ", type, ", got ", t.scalar_type());
-  TORCH_CHECK(t.is_contiguous(), "scalar_nerf_sampling: ", name, " must be contiguous");
+  SCALAR_CHECK(t.device().is_cpu(), "scalar_nerf_sampling: ", name, " must be a CPU tensor, got ", t.device());
+  SCALAR_CHECK(t.scalar_type() == type, "scalar_nerf_sampling: ", name, " must be ", type, ", got ", t.scalar_type());
+  SCALAR_CHECK(t.is_contiguous(), "scalar_nerf_sampling: ", name, " must be contiguous");
 }
 
 // NaN -> 0, then clamped to +-kMaxCoordinate (infinities included); branch-free so that loops vectorise.
@@ -51,13 +53,13 @@ at::Tensor unit_positions(const at::Tensor& origins, const at::Tensor& direction
   check_cpu(directions, "directions", at::kFloat);
   check_cpu(t, "t", at::kFloat);
   check_cpu(centre, "centre", at::kFloat);
-  TORCH_CHECK(origins.dim() == 2 && origins.size(1) == 3, "scalar_nerf_sampling: origins must be [R, 3], got ",
+  SCALAR_CHECK(origins.dim() == 2 && origins.size(1) == 3, "scalar_nerf_sampling: origins must be [R, 3], got ",
               origins.sizes());
-  TORCH_CHECK(directions.sizes() == origins.sizes(), "scalar_nerf_sampling: directions must be ", origins.sizes(),
+  SCALAR_CHECK(directions.sizes() == origins.sizes(), "scalar_nerf_sampling: directions must be ", origins.sizes(),
               ", got ", directions.sizes());
-  TORCH_CHECK(t.dim() == 2 && t.size(0) == origins.size(0), "scalar_nerf_sampling: t must be [R, S] with R = ",
+  SCALAR_CHECK(t.dim() == 2 && t.size(0) == origins.size(0), "scalar_nerf_sampling: t must be [R, S] with R = ",
               origins.size(0), ", got ", t.sizes());
-  TORCH_CHECK(centre.numel() == 3, "scalar_nerf_sampling: centre must have 3 values, got ", centre.numel());
+  SCALAR_CHECK(centre.numel() == 3, "scalar_nerf_sampling: centre must have 3 values, got ", centre.numel());
   const int64_t num_rays = t.size(0);
   const int64_t num_samples = t.size(1);
   at::Tensor out = at::empty({num_rays * num_samples, 3}, origins.options());
@@ -112,18 +114,18 @@ at::Tensor worth_evaluating(const at::Tensor& unit_positions, const at::Tensor& 
                             const at::Tensor& estimates, int64_t resolution, double min_optical_depth) {
   check_cpu(unit_positions, "unit_positions", at::kFloat);
   check_cpu(occupied, "occupied", at::kBool);
-  TORCH_CHECK(unit_positions.dim() == 2 && unit_positions.size(1) == 3,
+  SCALAR_CHECK(unit_positions.dim() == 2 && unit_positions.size(1) == 3,
               "scalar_nerf_sampling: unit_positions must be [M, 3], got ", unit_positions.sizes());
-  TORCH_CHECK(resolution > 0 && occupied.numel() == resolution * resolution * resolution,
+  SCALAR_CHECK(resolution > 0 && occupied.numel() == resolution * resolution * resolution,
               "scalar_nerf_sampling: occupied must have ", resolution, "^3 cells, got ", occupied.numel());
   const bool alpha_test = estimates.defined() && estimates.numel() > 0;
   const int64_t m = unit_positions.size(0);
   if (alpha_test) {
     check_cpu(estimates, "estimates", at::kFloat);
     check_cpu(deltas, "deltas", at::kFloat);
-    TORCH_CHECK(estimates.numel() == occupied.numel(), "scalar_nerf_sampling: estimates must have ", occupied.numel(),
+    SCALAR_CHECK(estimates.numel() == occupied.numel(), "scalar_nerf_sampling: estimates must have ", occupied.numel(),
                 " cells, got ", estimates.numel());
-    TORCH_CHECK(deltas.numel() == m, "scalar_nerf_sampling: deltas must have ", m, " values, got ", deltas.numel());
+    SCALAR_CHECK(deltas.numel() == m, "scalar_nerf_sampling: deltas must have ", m, " values, got ", deltas.numel());
   }
   at::Tensor out = at::empty({m}, unit_positions.options().dtype(at::kBool));
   if (m == 0) return out;
