@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import json
 import subprocess
+import sys
 import time
 from pathlib import Path
 from unittest import mock
 
 import pytest
 
+from conftest import REPO, ns_eval
 from scalar_nerfstudio.benchmarking.report import on_pareto_front
 from scalar_nerfstudio.scripts.benchmark import BenchmarkConfig, plan
 
@@ -313,3 +315,31 @@ def test_training_benchmark_settings_read_booleans_numbers_and_strings() -> None
     }
     with pytest.raises(SystemExit, match="NAME=VALUE"):
         bench_training.parse_settings(["pipeline.model.field.fused_decoder"])
+
+
+def test_train_vs_heldout_scores_held_out_views_as_ns_eval_does(full_run: Path, tmp_path: Path) -> None:
+    """benchmarks/train_vs_heldout.py on a trained run: its held-out PSNR is nerfstudio's (ns-eval on
+    the same run), every held-out view and every 4th training view are rendered."""
+    evaluated = ns_eval(full_run, tmp_path / "eval.json")
+    assert evaluated.returncode == 0, evaluated.stderr[-2000:]
+    ns_eval_psnr = json.loads((tmp_path / "eval.json").read_text())["results"]["psnr"]
+    result = subprocess.run(
+        [sys.executable, str(REPO / "benchmarks" / "train_vs_heldout.py"), "--load-config", str(full_run / "config.yml"),
+         "--every", "4", "--json", str(tmp_path / "rows.json")],
+        capture_output=True, text=True, timeout=600,
+    )
+    assert result.returncode == 0, result.stderr[-2000:]
+    (row,) = json.loads((tmp_path / "rows.json").read_text()).values()
+    assert row["held_out_views"] == 3 and row["train_views"] == 6  # 24 images, every 8th held out: 21 train, 3 held out
+    assert abs(row["held_out_psnr"] - ns_eval_psnr) < 0.05, (row, ns_eval_psnr)
+    assert abs(row["gap_db"] - (row["train_psnr"] - row["held_out_psnr"])) < 1e-9
+
+
+def test_train_vs_heldout_refuses_bad_options(tmp_path: Path) -> None:
+    script = str(REPO / "benchmarks" / "train_vs_heldout.py")
+    result = subprocess.run([sys.executable, script, "--load-config", str(tmp_path / "none.yml")], capture_output=True, text=True, timeout=120)
+    assert result.returncode != 0 and "no such config.yml" in result.stderr
+    (tmp_path / "config.yml").write_text("{}")
+    result = subprocess.run([sys.executable, script, "--load-config", str(tmp_path / "config.yml"), "--every", "0"],
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode != 0 and "--every 0: must be >= 1" in result.stderr
