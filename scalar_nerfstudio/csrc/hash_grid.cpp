@@ -245,11 +245,11 @@ std::vector<Level> make_levels(at::IntArrayRef level_offsets, at::IntArrayRef re
   const int64_t num_levels = static_cast<int64_t>(resolutions.size());
   SCALAR_CHECK(num_levels >= 1, "hash_grid cpp: need at least one level");
   SCALAR_CHECK(static_cast<int64_t>(level_offsets.size()) == num_levels + 1,
-              "hash_grid cpp: level_offsets must have num_levels + 1 entries");
+               "hash_grid cpp: level_offsets must have num_levels + 1 entries");
   SCALAR_CHECK(hashmap_size >= 1 && hashmap_size <= (int64_t{1} << 31) && (hashmap_size & (hashmap_size - 1)) == 0,
-              "hash_grid cpp: hashmap_size must be a power of two <= 2^31, got ", hashmap_size);
+               "hash_grid cpp: hashmap_size must be a power of two <= 2^31, got ", hashmap_size);
   SCALAR_CHECK(level_offsets[0] == 0 && level_offsets[num_levels] == table_rows,
-              "hash_grid cpp: level_offsets must start at 0 and end at the table's row count (", table_rows, ")");
+               "hash_grid cpp: level_offsets must start at 0 and end at the table's row count (", table_rows, ")");
   std::vector<Level> levels(num_levels);
   for (int64_t l = 0; l < num_levels; ++l) {
     const int64_t res = resolutions[l];
@@ -278,7 +278,7 @@ void check_float_cpu(const at::Tensor& t, const char* name) {
 
 void check_features(int64_t f) {
   SCALAR_CHECK(f == 1 || f == 2 || f == 4 || f == 8, "hash_grid cpp: features_per_level must be 1, 2, 4 or 8, got ",
-              f);
+               f);
 }
 
 // Threads for n points: at most at::get_num_threads(), and at least ~1024 points per thread.
@@ -321,7 +321,7 @@ at::Tensor hash_grid_backward(const at::Tensor& grad_out, const at::Tensor& posi
   check_features(f);
   const int64_t n = positions.size(0);
   SCALAR_CHECK(grad_out.size(0) == n && grad_out.size(1) == static_cast<int64_t>(resolutions.size()) * f,
-              "hash_grid cpp: grad_out must be [N, num_levels * F], got ", grad_out.sizes());
+               "hash_grid cpp: grad_out must be [N, num_levels * F], got ", grad_out.sizes());
   SCALAR_CHECK(!level_offsets.empty(), "hash_grid cpp: level_offsets must not be empty");
   const std::vector<Level> levels = make_levels(level_offsets, resolutions, hashmap_size, level_offsets.back());
   at::Tensor grad_table = empty_huge_paged({level_offsets.back(), f}, grad_out.options());

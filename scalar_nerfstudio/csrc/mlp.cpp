@@ -290,19 +290,19 @@ std::vector<Layer> check_layers(const std::vector<at::Tensor>& weights, const st
   for (size_t l = 0; l < weights.size(); ++l) {
     const at::Tensor& w = weights[l];
     SCALAR_CHECK(w.device().is_cpu() && w.scalar_type() == at::kBFloat16 && w.is_contiguous() && w.dim() == 3 &&
-                    w.size(2) == 2,
-                "scalar_nerf_mlp: packed weight ", l, " must be a contiguous CPU bfloat16 [P, W, 2] tensor, got ",
-                w.sizes(), " ", w.scalar_type());
+                     w.size(2) == 2,
+                 "scalar_nerf_mlp: packed weight ", l, " must be a contiguous CPU bfloat16 [P, W, 2] tensor, got ",
+                 w.sizes(), " ", w.scalar_type());
     Layer ly;
     ly.in_padded = transposed ? w.size(1) : 2 * w.size(0);
     ly.out_padded = transposed ? 2 * w.size(0) : w.size(1);
     ly.relu = relu[l] != 0;
     SCALAR_CHECK(ly.in_padded % 16 == 0 && ly.out_padded % 16 == 0 && ly.in_padded > 0 && ly.out_padded > 0,
-                "scalar_nerf_mlp: padded widths must be positive multiples of 16, layer ", l, " has ", ly.in_padded,
-                " -> ", ly.out_padded);
+                 "scalar_nerf_mlp: padded widths must be positive multiples of 16, layer ", l, " has ", ly.in_padded,
+                 " -> ", ly.out_padded);
     if (l > 0)
       SCALAR_CHECK(ly.in_padded == layers.back().out_padded, "scalar_nerf_mlp: layer ", l, " takes ", ly.in_padded,
-                  " inputs but layer ", l - 1, " gives ", layers.back().out_padded);
+                   " inputs but layer ", l - 1, " gives ", layers.back().out_padded);
     layers.push_back(ly);
   }
   return layers;
@@ -318,19 +318,19 @@ std::vector<at::Tensor> forward(const at::Tensor& input, const std::vector<at::T
   check(supported(), "this CPU has no AVX512-BF16");
   const std::vector<Layer> layers = check_layers(weights, relu, false);
   SCALAR_CHECK(input.device().is_cpu() && input.is_contiguous() && input.dim() == 2 &&
-                  (input.scalar_type() == at::kFloat || input.scalar_type() == at::kBFloat16),
-              "scalar_nerf_mlp: input must be a contiguous CPU float32 or bfloat16 [N, K] tensor");
+                   (input.scalar_type() == at::kFloat || input.scalar_type() == at::kBFloat16),
+               "scalar_nerf_mlp: input must be a contiguous CPU float32 or bfloat16 [N, K] tensor");
   SCALAR_CHECK(input.size(1) <= layers[0].in_padded, "scalar_nerf_mlp: input has ", input.size(1),
-              " columns, the first layer takes ", layers[0].in_padded);
+               " columns, the first layer takes ", layers[0].in_padded);
   SCALAR_CHECK(out_dim >= 1 && out_dim <= layers.back().out_padded, "scalar_nerf_mlp: out_dim ", out_dim,
-              " out of range");
+               " out of range");
   check(biases.size() == layers.size(), "one bias per layer");
   std::vector<const int32_t*> w32;
   std::vector<const float*> b32;
   for (size_t l = 0; l < layers.size(); ++l) {
     SCALAR_CHECK(biases[l].scalar_type() == at::kFloat && biases[l].is_contiguous() &&
-                    biases[l].numel() == layers[l].out_padded,
-                "scalar_nerf_mlp: bias ", l, " must be contiguous float32 with ", layers[l].out_padded, " values");
+                     biases[l].numel() == layers[l].out_padded,
+                 "scalar_nerf_mlp: bias ", l, " must be contiguous float32 with ", layers[l].out_padded, " values");
     w32.push_back(reinterpret_cast<const int32_t*>(weights[l].data_ptr<at::BFloat16>()));
     b32.push_back(biases[l].data_ptr<float>());
   }
@@ -372,8 +372,8 @@ std::vector<at::Tensor> backward(const at::Tensor& grad_out, const std::vector<a
   check(supported(), "this CPU has no AVX512-BF16");
   const std::vector<Layer> layers = check_layers(weights_t, relu, true);
   SCALAR_CHECK(grad_out.device().is_cpu() && grad_out.scalar_type() == at::kFloat && grad_out.is_contiguous() &&
-                  grad_out.dim() == 2 && grad_out.size(1) <= layers.back().out_padded,
-              "scalar_nerf_mlp: grad_out must be a contiguous CPU float32 [N, out] tensor, got ", grad_out.sizes());
+                   grad_out.dim() == 2 && grad_out.size(1) <= layers.back().out_padded,
+               "scalar_nerf_mlp: grad_out must be a contiguous CPU float32 [N, out] tensor, got ", grad_out.sizes());
   check(activations.size() == layers.size(), "one activation per layer");
   const int64_t n = grad_out.size(0);
   const int64_t npad = round_up(std::max<int64_t>(n, 1), kTile);
@@ -381,9 +381,9 @@ std::vector<at::Tensor> backward(const at::Tensor& grad_out, const std::vector<a
   for (size_t l = 0; l < layers.size(); ++l) {
     const at::Tensor& a = activations[l];
     SCALAR_CHECK(a.scalar_type() == at::kBFloat16 && a.is_contiguous() && a.dim() == 2 && a.size(0) == npad &&
-                    a.size(1) == layers[l].in_padded,
-                "scalar_nerf_mlp: activation ", l, " must be bfloat16 [", npad, ", ", layers[l].in_padded, "], got ",
-                a.sizes());
+                     a.size(1) == layers[l].in_padded,
+                 "scalar_nerf_mlp: activation ", l, " must be bfloat16 [", npad, ", ", layers[l].in_padded, "], got ",
+                 a.sizes());
     acts.push_back(reinterpret_cast<const uint16_t*>(a.data_ptr<at::BFloat16>()));
   }
   SCALAR_CHECK(in_dim >= 0 && in_dim <= layers[0].in_padded, "scalar_nerf_mlp: in_dim ", in_dim, " out of range");

@@ -54,11 +54,11 @@ at::Tensor unit_positions(const at::Tensor& origins, const at::Tensor& direction
   check_cpu(t, "t", at::kFloat);
   check_cpu(centre, "centre", at::kFloat);
   SCALAR_CHECK(origins.dim() == 2 && origins.size(1) == 3, "scalar_nerf_sampling: origins must be [R, 3], got ",
-              origins.sizes());
+               origins.sizes());
   SCALAR_CHECK(directions.sizes() == origins.sizes(), "scalar_nerf_sampling: directions must be ", origins.sizes(),
-              ", got ", directions.sizes());
+               ", got ", directions.sizes());
   SCALAR_CHECK(t.dim() == 2 && t.size(0) == origins.size(0), "scalar_nerf_sampling: t must be [R, S] with R = ",
-              origins.size(0), ", got ", t.sizes());
+               origins.size(0), ", got ", t.sizes());
   SCALAR_CHECK(centre.numel() == 3, "scalar_nerf_sampling: centre must have 3 values, got ", centre.numel());
   const int64_t num_rays = t.size(0);
   const int64_t num_samples = t.size(1);
@@ -115,16 +115,16 @@ at::Tensor worth_evaluating(const at::Tensor& unit_positions, const at::Tensor& 
   check_cpu(unit_positions, "unit_positions", at::kFloat);
   check_cpu(occupied, "occupied", at::kBool);
   SCALAR_CHECK(unit_positions.dim() == 2 && unit_positions.size(1) == 3,
-              "scalar_nerf_sampling: unit_positions must be [M, 3], got ", unit_positions.sizes());
+               "scalar_nerf_sampling: unit_positions must be [M, 3], got ", unit_positions.sizes());
   SCALAR_CHECK(resolution > 0 && occupied.numel() == resolution * resolution * resolution,
-              "scalar_nerf_sampling: occupied must have ", resolution, "^3 cells, got ", occupied.numel());
+               "scalar_nerf_sampling: occupied must have ", resolution, "^3 cells, got ", occupied.numel());
   const bool alpha_test = estimates.defined() && estimates.numel() > 0;
   const int64_t m = unit_positions.size(0);
   if (alpha_test) {
     check_cpu(estimates, "estimates", at::kFloat);
     check_cpu(deltas, "deltas", at::kFloat);
     SCALAR_CHECK(estimates.numel() == occupied.numel(), "scalar_nerf_sampling: estimates must have ", occupied.numel(),
-                " cells, got ", estimates.numel());
+                 " cells, got ", estimates.numel());
     SCALAR_CHECK(deltas.numel() == m, "scalar_nerf_sampling: deltas must have ", m, " values, got ", deltas.numel());
   }
   at::Tensor out = at::empty({m}, unit_positions.options().dtype(at::kBool));
