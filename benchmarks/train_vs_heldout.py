@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 from pathlib import Path
 from typing import Dict, List
 
@@ -24,6 +23,8 @@ from typing import Dict, List
 def view_psnrs(pipeline, dataset, indices: List[int]) -> List[float]:
     """PSNR in dB of each view ``indices`` of ``dataset`` rendered by the pipeline's model (eval mode)."""
     import torch
+
+    from scalar_nerfstudio.metrics import psnr
 
     model = pipeline.model
     model.eval()
@@ -35,8 +36,7 @@ def view_psnrs(pipeline, dataset, indices: List[int]) -> List[float]:
             truth = dataset[index]["image"].float()[..., :3]  # [H, W, 3]
             if truth.shape != rendered.shape:
                 raise SystemExit(f"view {index}: rendered {tuple(rendered.shape)} but the image is {tuple(truth.shape)}")
-            mse = float(torch.mean((rendered - truth) ** 2))
-            scores.append(-10.0 * math.log10(max(mse, 1e-10)))
+            scores.append(float(psnr(rendered, truth)))
     return scores
 
 

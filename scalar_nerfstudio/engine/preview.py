@@ -16,6 +16,7 @@ import torch
 from PIL import Image
 
 from scalar_nerfstudio.atomic_io import atomic_write_bytes
+from scalar_nerfstudio.metrics import psnr
 
 PREVIEW_NAME = "preview.png"
 PREVIEW_DIR = "previews"
@@ -51,10 +52,9 @@ def write_preview(pipeline, run_dir: Path, step: int) -> Tuple[Path, float]:
     truth = dataset[0]["image"].float()[..., :3]  # [H, W, 3]
     if truth.shape != rendered.shape:
         truth = torch.nn.functional.interpolate(truth.permute(2, 0, 1)[None], size=rendered.shape[:2], mode="area")[0].permute(1, 2, 0)
-    mse = torch.mean((rendered.clamp(0, 1) - truth) ** 2).item()
-    psnr = float(-10.0 * np.log10(max(mse, 1e-10)))
+    score = float(psnr(rendered.clamp(0, 1), truth))
     png = _png_bytes(np.concatenate([_to_uint8(rendered), _to_uint8(truth)], axis=1))
     path = Path(run_dir) / PREVIEW_NAME
     atomic_write_bytes(Path(run_dir) / PREVIEW_DIR / f"step-{step:09d}.png", png)
     atomic_write_bytes(path, png)
-    return path, psnr
+    return path, score
