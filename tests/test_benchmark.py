@@ -65,6 +65,17 @@ def test_quick_benchmark_end_to_end(tmp_path: Path) -> None:
     for name in ("psnr_vs_time.png", "psnr_vs_render_time.png", "psnr_vs_parameters.png"):
         data = (output / name).read_bytes()
         assert data.startswith(PNG_SIGNATURE) and len(data) > 5000, name
+    # Every run keeps its final checkpoint (written after its timed steps): the blocks' run, loaded
+    # again from its folder, scores the held-out PSNR the benchmark reported for it.
+    scored = subprocess.run(
+        [sys.executable, str(REPO / "benchmarks" / "train_vs_heldout.py"), "--load-config", str(Path(scalar["run_dir"]) / "config.yml"),
+         "--every", "8", "--json", str(tmp_path / "rows.json")],
+        capture_output=True, text=True, timeout=600,
+    )
+    assert scored.returncode == 0, scored.stderr[-2000:]
+    (row,) = json.loads((tmp_path / "rows.json").read_text()).values()
+    assert abs(row["held_out_psnr"] - scalar["final"]["psnr"]) < 0.05, (row, scalar["final"])
+    assert list((Path(ngp["run_dir"]) / "nerfstudio_models").glob("step-*.ckpt"))
 
 
 def test_plan_and_budgets(tmp_path: Path) -> None:

@@ -6,9 +6,9 @@ SPEC (written by :func:`.schedule.variant_spec`) holds: ``method`` ("scalar-nerf
 ``downscale``, ``overrides`` (dotted trainer-config attributes -> values), ``eval_every`` (evaluate
 every this many steps; 0: never during training), ``eval_at_end``, ``time_limit_s`` (stop training after this much training
 wall-clock; 0: none), ``fusions`` (fusion modes to evaluate at the end; the first is the run's),
-``output_dir``, ``result`` (where to write the JSON), ``keep_checkpoint``.
+``output_dir``, ``result`` (where to write the JSON).
 
-Training time excludes evaluation. Lines ``PROGRESS <done> <total>`` on stdout drive the
+Training time excludes evaluation and the run's checkpoint, written once after its last step. Lines ``PROGRESS <done> <total>`` on stdout drive the
 benchmark's progress bar.
 """
 
@@ -126,8 +126,11 @@ def run(spec: Dict[str, Any]) -> Dict[str, Any]:
     config.save_config()
     trainer = config.setup(local_rank=0, world_size=1)
     trainer.setup()
-    if not spec.get("keep_checkpoint", False):  # no checkpoint writes inside the timed steps
-        trainer.save_checkpoint = lambda step: None
+    save_checkpoint = trainer.save_checkpoint
+    requested_saves: List[int] = []
+    """Steps nerfstudio asked to save at: none is written inside the timed steps; the last one is
+    written after them, so that every variant's run can be loaded (ns-eval, train_vs_heldout.py)."""
+    trainer.save_checkpoint = requested_saves.append
     pipeline = trainer.pipeline
     total = config.max_num_iterations  # the trainer's setup resolved 0 (= every phase) to the phases' total
     eval_every = int(spec.get("eval_every", 0))
@@ -157,6 +160,8 @@ def run(spec: Dict[str, Any]) -> Dict[str, Any]:
 
     clock = time_train_iterations(trainer, after_step)
     trainer.train()
+    if requested_saves:
+        save_checkpoint(requested_saves[-1])
     if spec.get("eval_at_end", True) and (not curve or curve[-1]["step"] != clock.steps):
         curve.append({"step": clock.steps, "train_s": clock.busy_s, **_evaluate(pipeline)})
     finals: Dict[str, Dict[str, float]] = {}

@@ -63,7 +63,6 @@ def variant_spec(config: BenchmarkConfig, variant: Variant, runs: Path, results:
         "name": variant.name, "method": variant.method, "data": str(config.data), "downscale": config.downscale,
         "overrides": overrides, "eval_every": eval_every, "time_limit_s": variant.time_limit_s, "fusions": variant.fusions,
         "output_dir": str(runs / variant.name), "result": str(runs / f"{variant.name}.json"),
-        "keep_checkpoint": variant.name == "global",
     }
 
 
