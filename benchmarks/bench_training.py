@@ -56,7 +56,7 @@ def train_one(method: str, data: str, downscale: int, seconds: float, steps: int
     import torch
 
     from scalar_nerfstudio.engine.timing import time_train_iterations
-    from scalar_nerfstudio.benchmarking.runner import trainer_config
+    from scalar_nerfstudio.benchmarking.runner import setup_trainer, trainer_config
 
     # the benchmark runner's set-up (every 8th image held out, no evaluation or checkpoints while
     # training; LPIPS stubbed out for nerfacto, whose weights would be downloaded), on ``device``
@@ -66,8 +66,7 @@ def train_one(method: str, data: str, downscale: int, seconds: float, steps: int
         overrides.update(settings)
     config = trainer_config({"method": method, "data": data, "downscale": downscale, "output_dir": str(out.parent / "runs"), "overrides": overrides})
     config.set_timestamp()
-    trainer = config.setup(local_rank=0, world_size=1)
-    trainer.setup()
+    trainer = setup_trainer(config)
 
     def stop_when_out_of_time(step: int, result, clock) -> None:
         if clock.wall_s >= seconds:

@@ -159,9 +159,10 @@ def decoder_width_used(config: BenchmarkConfig) -> int:
 
 
 def markdown(config: BenchmarkConfig, table: List[Dict[str, Any]], notes: Dict[str, str], command: str, machine: str,
-             results: Optional[Dict[str, Dict[str, Any]]] = None, decoder_width: Optional[int] = None) -> str:
+             results: Optional[Dict[str, Dict[str, Any]]] = None, decoder_width: Optional[int] = None, seed: Optional[int] = None) -> str:
     """results.md; ``decoder_width``: the width the run's variants trained with (None: a report written
-    before the width was recorded, which says so)."""
+    before the width was recorded, which says so); ``seed``: their ``machine.seed`` (None: a report of
+    runs from before the benchmark seeded them)."""
     total = config.global_steps + config.num_blocks * config.block_steps
     parallel_budget = ""
     if any(name.startswith("auto-parallel") for name in (results or {})):
@@ -175,6 +176,7 @@ def markdown(config: BenchmarkConfig, table: List[Dict[str, Any]], notes: Dict[s
         f"(global phase G = {config.global_steps}, K = {config.num_blocks} blocks x B = {config.block_steps}{parallel_budget}; "
         f"decoder {f'{decoder_width} wide' if decoder_width is not None else 'width not recorded'}); nerfacto: "
         "the wall-clock of `scalar`. Training time excludes evaluation. Eval split: every 8th image. "
+        + (f"Seed {seed} (`machine.seed` of every run). " if seed is not None else "Runs not seeded (written before the benchmark seeded them). ") +
         "LPIPS: not computed for nerfacto (its weights need a download); for ours only when the weights are available offline.",
         "",
         "| variant | fusion | steps | train s | rays/s | PSNR | SSIM | render ms/img | parameters | peak RSS MiB | Pareto (params / time) |",
@@ -257,7 +259,7 @@ def _write(output_dir: Path, config: BenchmarkConfig, report: Dict[str, Any]) ->
     """results.json, results.md and the plots of ``report``."""
     atomic_write_text(output_dir / "results.json", json.dumps(report, indent=2))
     atomic_write_text(output_dir / "results.md", markdown(config, report["rows"], report["notes"], report["command"], report["machine"],
-                                                          report["results"], report.get("decoder_width")))
+                                                          report["results"], report.get("decoder_width"), report["config"].get("seed")))
     plots(report["results"], report["rows"], output_dir, config.log2_table)
 
 

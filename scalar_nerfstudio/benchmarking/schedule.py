@@ -52,7 +52,7 @@ def prepare(config: BenchmarkConfig) -> Tuple[List[Variant], Dict[str, str]]:
 
 def variant_spec(config: BenchmarkConfig, variant: Variant, runs: Path, results: Dict[str, Dict[str, Any]]) -> Dict[str, Any]:
     """The SPEC the runner trains ``variant`` from (``results``: the variants run so far)."""
-    overrides = dict(variant.overrides)
+    overrides = {"machine.seed": config.seed, **variant.overrides}
     if variant.base is not None:
         overrides["pipeline.global_checkpoint"] = results[variant.base]["checkpoint"]
     eval_every = config.eval_every if variant.eval_every is None else variant.eval_every

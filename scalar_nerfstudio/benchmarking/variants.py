@@ -82,6 +82,11 @@ class BenchmarkConfig:
     2026-11-23 were measured with."""
     eval_every: int = 200
     """Evaluate every this many steps (plus at the end of each variant)."""
+    seed: int = 42
+    """``machine.seed`` of every variant (ns-train's default): each run starts from the initial weights
+    and rays this seed gives, so the same command trains the same models; another seed repeats the
+    comparison with others (runs of one configuration differ by up to 0.7 dB between seeds on the
+    256 x 192 town at T = 10, docs/town.md)."""
     variants: Tuple[str, ...] = VARIANTS
     """Which variants to run (the block variants add the global phase they start from)."""
     quick: bool = False
