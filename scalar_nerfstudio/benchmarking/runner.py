@@ -8,8 +8,8 @@ every this many steps; 0: never during training), ``eval_at_end``, ``time_limit_
 wall-clock; 0: none), ``fusions`` (fusion modes to evaluate at the end; the first is the run's),
 ``output_dir``, ``result`` (where to write the JSON).
 
-Training time excludes evaluation and the run's checkpoint, written once after its last step. Lines ``PROGRESS <done> <total>`` on stdout drive the
-benchmark's progress bar.
+Training time excludes evaluation and the run's checkpoint, written once after its last step.
+Lines ``PROGRESS <done> <total>`` on stdout drive the benchmark's progress bar.
 """
 
 from __future__ import annotations
