@@ -42,7 +42,7 @@ def train_one(spec: Dict[str, Any]) -> None:
     """
     import torch
 
-    from scalar_nerfstudio.benchmarking.runner import trainer_config
+    from scalar_nerfstudio.benchmarking.runner import setup_trainer, trainer_config
     from scalar_nerfstudio.engine.timing import StepClock, time_train_iterations
 
     overrides = {
@@ -54,8 +54,7 @@ def train_one(spec: Dict[str, Any]) -> None:
     config = trainer_config({"method": "scalar-nerf", "data": spec["data"], "downscale": int(spec["downscale"]),
                              "output_dir": spec["output_dir"], "overrides": overrides})
     config.set_timestamp()
-    trainer = config.setup(local_rank=0, world_size=1)
-    trainer.setup()
+    trainer = setup_trainer(config)
     trainer.save_checkpoint = lambda step: None  # no checkpoint writes inside or after the timed steps
     ends: List[float] = []
     threads: List[int] = []

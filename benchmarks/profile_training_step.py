@@ -25,7 +25,7 @@ def main() -> None:
     args = parser.parse_args()
 
     from scalar_nerfstudio.engine.timing import time_train_iterations
-    from scalar_nerfstudio.benchmarking.runner import trainer_config
+    from scalar_nerfstudio.benchmarking.runner import setup_trainer, trainer_config
 
     # the benchmark's trainer set-up: eval every 8th image, no evaluation or checkpoints while training
     config = trainer_config({
@@ -33,8 +33,7 @@ def main() -> None:
         "overrides": {"max_num_iterations": args.steps},
     })
     config.set_timestamp()
-    trainer = config.setup(local_rank=0, world_size=1)
-    trainer.setup()
+    trainer = setup_trainer(config)
 
     iteration = trainer.train_iteration
 
