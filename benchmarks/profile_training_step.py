@@ -37,12 +37,23 @@ def main() -> None:
 
     iteration = trainer.train_iteration
 
+    on_cuda = torch.device(trainer.pipeline.model.device).type == "cuda"
+    activities = [torch.profiler.ProfilerActivity.CPU] + ([torch.profiler.ProfilerActivity.CUDA] if on_cuda else [])
+
     def profiled_iteration(step: int):
         if step != args.profile_step:
             return iteration(step)
-        with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as profile:
+        with torch.profiler.profile(activities=activities) as profile:
             result = iteration(step)
-        print(profile.key_averages().table(sort_by="self_cpu_time_total", row_limit=20), flush=True)
+            if on_cuda:
+                torch.cuda.synchronize()
+        averages = profile.key_averages()
+        print(averages.table(sort_by="self_cpu_time_total", row_limit=20), flush=True)
+        if on_cuda:  # the GPU's side: where its time goes, and how many kernels one step launches
+            print(averages.table(sort_by="self_cuda_time_total", row_limit=20), flush=True)
+            launches = sum(event.count for event in averages if event.key in ("cudaLaunchKernel", "cuLaunchKernel", "cudaLaunchKernelExC"))
+            busy_ms = sum(event.self_device_time_total for event in averages) / 1e3
+            print(f"one step on {torch.cuda.get_device_name()}: {launches} kernel launches, GPU busy {busy_ms:.1f} ms", flush=True)
         return result
 
     trainer.train_iteration = profiled_iteration

@@ -44,9 +44,11 @@ def small_scalar_model(hidden_dim: int = 64, num_train_data: int = 2, **config: 
 
 
 def ray_bundle(origins: torch.Tensor, directions: torch.Tensor) -> RayBundle:
-    """Rays [N, 3] origins and directions of training image 0, unit pixel area, no near/far set."""
-    n = origins.shape[0]
-    return RayBundle(origins=origins, directions=directions, pixel_area=torch.ones(n, 1), camera_indices=torch.zeros(n, 1, dtype=torch.long))
+    """Rays [N, 3] origins and directions of training image 0, unit pixel area, no near/far set, on the
+    origins' device."""
+    n, device = origins.shape[0], origins.device
+    return RayBundle(origins=origins, directions=directions, pixel_area=torch.ones(n, 1, device=device),
+                     camera_indices=torch.zeros(n, 1, dtype=torch.long, device=device))
 
 
 def free_port() -> int:

@@ -83,7 +83,7 @@ def _decoded(outputs: dict) -> Tensor:
     encoded = outputs["normals"]
     assert torch.isfinite(encoded).all() and encoded.min() >= 0.0 and encoded.max() <= 1.0  # what ns-export asserts
     normals = normals_from_unit_interval(encoded)
-    assert torch.allclose(torch.linalg.vector_norm(normals, dim=-1), torch.ones(normals.shape[0]), atol=1e-5)
+    assert torch.allclose(torch.linalg.vector_norm(normals, dim=-1), torch.ones(normals.shape[0], device=normals.device), atol=1e-5)
     return normals
 
 
@@ -266,7 +266,8 @@ def test_fused_normals_follow_the_fusion(scene: Path, tmp_path: Path) -> None:
     model.eval()
     generator = torch.Generator().manual_seed(0)
     origins = (torch.rand(64, 3, generator=generator) - 0.5) * 0.5
-    rays = ray_bundle(origins, torch.nn.functional.normalize(torch.randn(64, 3, generator=generator), dim=-1))
+    directions = torch.nn.functional.normalize(torch.randn(64, 3, generator=generator), dim=-1)
+    rays = ray_bundle(origins.to(model.device), directions.to(model.device))  # the trainer's device: CUDA where present
     with torch.no_grad():
         own = {b: model.blocks[str(b)].render_rays(rays, normals=True)["normals"] for b in model.block_ids}
         for mode in ("global", "nearest", "block:1", "idw", "nearest-idw", "global-only"):

@@ -120,10 +120,10 @@ def test_dropdown_switches_fusion_and_block_colours(full_run: Path) -> None:
     single = model.get_outputs_for_camera(camera)
     assert set(single["block_winner"].unique().long().tolist()) == {1}
     # every pixel of block_colour is the colour of the block that won it
-    block1_colour = model._winner_colours(torch.tensor([[1.0]]))[0]
+    block1_colour = model._winner_colours(torch.tensor([[1.0]], device=model.device))[0]
     colours = single["block_colour"].reshape(-1, 3)
     assert torch.allclose(colours, block1_colour.expand_as(colours))
-    assert not torch.allclose(block1_colour, model._winner_colours(torch.tensor([[-1.0]]))[0])
+    assert not torch.allclose(block1_colour, model._winner_colours(torch.tensor([[-1.0]], device=model.device))[0])
 
 
 # ------------------------------------------------------------------------ the browser

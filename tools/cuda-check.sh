@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The checks that need a CUDA GPU, in one go, each stage with its own time limit (CI has no GPU):
 #   1. the two CUDA-only tests (hash grid on CUDA against the CPU reference, fp16 autocast stays
-#      finite), first, so that a later stage's time limit cannot skip them;
+#      finite) and the three C++ kernels' bad-input tests (one crashed a GPU machine before
+#      csrc/check.h), first, so that a later stage's time limit cannot skip them;
 #   2. the training benchmark on the GPU: scalar-nerf against nerfstudio's nerfacto, both with
 #      nerfstudio's mixed precision (benchmarks/bench_training.py --device cuda);
 #   3. the quick test subset with the GPU visible, so that every `ns-train` a test starts (device
@@ -30,7 +31,10 @@ python -c "import torch; print('torch', torch.__version__, 'CUDA', torch.version
 
 stage "1. CUDA-only tests"
 timeout "${UNIT_S:-150}" python -m pytest -q -p no:cacheprovider -rs tests/test_hash_encoding.py::test_cuda_matches_cpu_reference \
-    tests/test_numerics.py::test_fp16_autocast_on_cuda_stays_finite 2>&1 | tee "$out/unit.log"
+    tests/test_numerics.py::test_fp16_autocast_on_cuda_stays_finite \
+    tests/test_hash_encoding.py::test_cpp_rejects_bad_inputs \
+    tests/test_fused_mlp.py::test_the_kernel_rejects_bad_inputs_with_a_message_that_names_the_sizes \
+    tests/test_sampling_kernels.py::test_the_kernel_rejects_samples_that_do_not_match_their_rays 2>&1 | tee "$out/unit.log"
 
 stage "2. training benchmark on CUDA"
 timeout "${BENCH_S:-240}" python benchmarks/bench_training.py --device cuda --data "$data" --minutes "${BENCH_MINUTES:-0.5}" \
