@@ -52,7 +52,8 @@ def main() -> None:
         if on_cuda:  # the GPU's side: where its time goes, and how many kernels one step launches
             print(averages.table(sort_by="self_cuda_time_total", row_limit=20), flush=True)
             launches = sum(event.count for event in averages if event.key in ("cudaLaunchKernel", "cuLaunchKernel", "cudaLaunchKernelExC"))
-            busy_ms = sum(event.self_device_time_total for event in averages) / 1e3
+            kernels = [event for event in averages if event.device_type == torch.autograd.DeviceType.CUDA]  # not the ops that launched them
+            busy_ms = sum(event.self_device_time_total for event in kernels) / 1e3
             print(f"one step on {torch.cuda.get_device_name()}: {launches} kernel launches, GPU busy {busy_ms:.1f} ms", flush=True)
         return result
 
