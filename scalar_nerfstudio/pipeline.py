@@ -9,7 +9,6 @@ killed in. Only the current phase's images are loaded (the global datamanager, o
 from __future__ import annotations
 
 import gc
-import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Dict, List, Literal, Optional, Tuple, Type
@@ -19,7 +18,6 @@ from nerfstudio.data.datamanagers.base_datamanager import DataManager
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 from nerfstudio.pipelines.base_pipeline import Pipeline, VanillaPipeline, VanillaPipelineConfig
 from nerfstudio.utils.rich_utils import CONSOLE
-from torch import Tensor
 from torch.cuda.amp.grad_scaler import GradScaler
 
 from scalar_nerfstudio.blocks.capacity import BlockCapacity, LayoutScale, auto_num_blocks, layout_scale
@@ -30,7 +28,7 @@ from scalar_nerfstudio.data.datamanager import ScalarDataManagerConfig, camera_c
 from scalar_nerfstudio.engine.device import keep_freed_memory
 from scalar_nerfstudio.runs import block_models_dir
 from scalar_nerfstudio.viewer import BlockOverlay, CoarseFirstRender, fusion_dropdown
-from scalar_nerfstudio.models.scene_model import BlockInit, BlockRays, DecoderMode, ScalarSceneModel, ScalarSceneModelConfig
+from scalar_nerfstudio.models.scene_model import BlockInit, DecoderMode, ScalarSceneModel, ScalarSceneModelConfig
 
 
 @dataclass(frozen=True)
@@ -109,13 +107,6 @@ class ScalarPipelineConfig(VanillaPipelineConfig):
     block's cameras observe (--pipeline.model.block-fit-steps; only the hash grids run),
     with its images' appearance embeddings copied. A run's config.yml from before this option loads
     as fresh, as it was trained."""
-    block_rays: BlockRays = "cameras"
-    """Which training rays a block trains on. ``cameras`` (default, the paper's): every pixel of the
-    block's images (its cameras' KMeans group, grown by s_AABB). ``surface``: every training pixel,
-    of any image, whose ray ends (at the trained global model's depth) in the block's region; the
-    pixels are assigned once, when the first block starts, and each ray trains exactly one block.
-    Render such a run with ``--pipeline.model.fusion surface --pipeline.model.blocks-per-ray 1
-    --pipeline.model.observed-blocks-only False``: the same rule picks the same block per ray."""
     lr_schedule: LrSchedule = "restart"
     """How learning rates run across phases. ``restart`` (default): when blocks follow the global
     phase, the global model warms up and then holds its learning rates (it is not the model that
@@ -229,7 +220,6 @@ class ScalarPipeline(VanillaPipeline):
             block_capacities=self.plan.capacities,
             decoder_mode=config.decoder_mode,
             block_init=config.effective_block_init(),
-            block_rays=config.__dict__.get("block_rays", "cameras"),  # a config.yml from before the option: cameras
             block_observation=self._block_observation(parsed),
         )
         self.model.to(device)
@@ -243,8 +233,6 @@ class ScalarPipeline(VanillaPipeline):
         self.coarse_first_render = CoarseFirstRender()
         self._block_datamanager: Optional[DataManager] = None
         self._block_datamanager_index: Optional[int] = None
-        self._surface_owners: Optional[List[Tensor]] = None
-        """With ``block_rays`` surface: per training image, [H, W] uint8, the block each pixel's ray trains."""
         self._device = device
 
     # ---------------------------------------------------------------------------- set-up
@@ -344,52 +332,13 @@ class ScalarPipeline(VanillaPipeline):
             self._block_datamanager = None
             gc.collect()
             block = self.split.blocks[phase.block]
-            if self.model.block_rays == "surface":
-                masks = [owners == phase.block for owners in self.surface_owners()]
-                used = sum(int(m.any()) for m in masks)
-                CONSOLE.log(f"phase {phase.name}: training on the {int(sum(int(m.sum()) for m in masks))} rays it owns, "
-                            f"from {used} of the {len(masks)} training images")
-                config = replace(self.config.datamanager, image_subset=None)
-                self._block_datamanager = config.setup(device=self._device, test_mode="val", world_size=1, local_rank=0, pixel_masks=masks)
-            else:
-                CONSOLE.log(f"phase {phase.name}: loading its {len(block.image_indices)} training images")
-                config = replace(self.config.datamanager, image_subset=tuple(block.image_indices))
-                self._block_datamanager = config.setup(device=self._device, test_mode="val", world_size=1, local_rank=0)
+            CONSOLE.log(f"phase {phase.name}: loading its {len(block.image_indices)} training images")
+            config = replace(self.config.datamanager, image_subset=tuple(block.image_indices))
+            self._block_datamanager = config.setup(device=self._device, test_mode="val", world_size=1, local_rank=0)
             self._block_datamanager.to(self._device)
             self._block_datamanager_index = phase.block
         assert self._block_datamanager is not None
         return self._block_datamanager
-
-    @torch.no_grad()
-    def surface_owners(self) -> List[Tensor]:
-        """Per training image, [H, W] uint8: the block whose region holds each pixel's surface at the
-        global model's depth (:meth:`ScalarSceneModel.surface_owners`). Computed once (a depth-only
-        render of every training image by the global model, in chunks), then kept."""
-        if self._surface_owners is None:
-            cameras = self.datamanager.train_dataset.cameras.to(self._device)
-            chunk = self.model.config.eval_num_rays_per_chunk
-            was_training = self.model.training
-            self.model.eval()
-            owners = []
-            started = time.perf_counter()
-            for index in range(len(cameras)):
-                rays = cameras.generate_rays(camera_indices=index, keep_shape=True)  # [H, W]
-                height, width = rays.shape
-                flat = rays.reshape((-1,))
-                owned = torch.cat([self.model.surface_owners(flat[i : i + chunk]) for i in range(0, len(flat), chunk)])
-                owners.append(owned.reshape(height, width).to(device="cpu", dtype=torch.uint8))
-            self.model.train(was_training)
-            counts = torch.bincount(torch.cat([o.reshape(-1) for o in owners]).long(), minlength=self.split.num_blocks)
-            CONSOLE.log(f"rays assigned to blocks by the global depth in {time.perf_counter() - started:.0f} s: "
-                        + ", ".join(f"block {b}: {int(c)}" for b, c in enumerate(counts.tolist())))
-            batch = self.config.datamanager.train_num_rays_per_batch
-            short = [b for b in self.model.block_ids if int(counts[b]) < batch]
-            if short:  # nerfstudio's pixel sampler cannot draw a batch from fewer pixels
-                raise ValueError(
-                    f"--pipeline.block-rays surface: block(s) {short} own only {[int(counts[b]) for b in short]} rays at the "
-                    f"global model's depth, fewer than a batch ({batch}); use fewer blocks or --pipeline.block-rays cameras")
-            self._surface_owners = owners
-        return self._surface_owners
 
     def attach_run_dir(self, run_dir: Path) -> None:
         """Keep finished blocks in ``run_dir``'s block_models/ folder and load them from there."""

@@ -374,37 +374,3 @@ def test_fused_rendering_starts_rays_at_the_training_near_plane(scene: Path, tmp
     model = _trainer(scene, tmp_path).pipeline.model.eval()
     rays = RayBundle(origins=torch.zeros(2, 3), directions=torch.eye(3)[:2], pixel_area=torch.ones(2, 1))
     assert torch.equal(model.collider(rays).nears, torch.full((2, 1), model.config.near_plane))
-
-
-def test_surface_blocks_train_on_the_rays_they_render(scene: Path, tmp_path: Path) -> None:
-    """``block_rays`` surface: every ray a block trains on ends in its region at the global depth, so the
-    surface fusion (one block per ray, every block competing) renders that ray with the same block;
-    the rays of all images are shared out, each to one block."""
-
-    def surface_fusion(config) -> None:
-        config.pipeline.model.fusion = "surface"
-        config.pipeline.model.blocks_per_ray = 1
-        config.pipeline.model.observed_blocks_only = False
-
-    trainer = _trainer(scene, tmp_path, block_rays="surface", configure=surface_fusion)
-    pipeline, model = trainer.pipeline, trainer.pipeline.model
-    trainer.config.max_num_iterations = pipeline.phases[1].start_step  # the global phase, then a look at each block's data
-    trainer.train()
-    num_images = len(pipeline.datamanager.train_dataset)
-    owners = pipeline.surface_owners()
-    assert len(owners) == num_images and owners[0].shape == pipeline.datamanager.train_dataset[0]["image"].shape[:2]
-    counts = torch.bincount(torch.cat([o.reshape(-1) for o in owners]).long(), minlength=NUM_BLOCKS)
-    assert (counts > 0).all() and int(counts.sum()) == sum(o.numel() for o in owners)
-    model.eval()
-    for phase in pipeline.phases[1:]:
-        datamanager = pipeline._train_datamanager(phase)
-        assert len(datamanager.train_dataset) == num_images  # every image, masked to the block's rays
-        assert model.phase_model(phase.block).field.appearance.num_embeddings == num_images
-        ray_bundle, batch = datamanager.next_train(0)
-        assert (model.surface_owners(ray_bundle.to(model.device)) == phase.block).all()
-    for phase in pipeline.phases[1:]:
-        model.begin_block(phase.block)
-    camera = pipeline.datamanager.train_dataset.cameras[0:1].to(model.device)
-    with torch.no_grad():
-        winner = model.get_outputs_for_camera(camera)["block_winner"].reshape(-1).long().cpu()
-    assert torch.equal(winner, owners[0].reshape(-1).long())

@@ -47,27 +47,3 @@ def test_datamanager_caches_a_subset_and_samples_every_image_over_time(scene: Pa
         _, batch = datamanager.next_train(step)
         seen.update(torch.unique(batch["indices"][:, 0]).tolist())
     assert seen == set(range(num_train)), f"images never sampled: {sorted(set(range(num_train)) - seen)}"
-
-
-def test_pixel_masks_limit_the_rays_sampled_to_the_given_pixels(scene: Path) -> None:
-    """A block trained on the rays it owns: only pixels of its masks are ever sampled, images without
-    any are skipped, and a mask of the wrong size is refused by name."""
-    config = ScalarDataManagerConfig(
-        data=scene, dataparser=NerfstudioDataParserConfig(eval_mode="interval", eval_interval=8), train_num_rays_per_batch=512,
-    )
-    plain = config.setup(device="cpu", test_mode="val")
-    num_train = len(plain.train_dataset)
-    height, width = plain.train_dataset[0]["image"].shape[:2]
-    masks = [torch.zeros(height, width, dtype=torch.bool) for _ in range(num_train)]
-    masks[3][10:40, 30:50] = True  # 600 pixels of image 3, and one pixel of image 5
-    masks[5][0, 0] = True
-    datamanager = config.setup(device="cpu", test_mode="val", pixel_masks=masks)
-    for step in range(3):
-        _, batch = datamanager.next_train(step)
-        image, y, x = batch["indices"].unbind(-1)  # [512] each
-        assert set(image.tolist()) <= {3, 5}
-        assert all(bool(masks[i][r, c]) for i, r, c in zip(image.tolist(), y.tolist(), x.tolist()))
-    with pytest.raises(ValueError, match=r"pixel mask of image 0 is \[2, 2\]"):
-        config.setup(device="cpu", test_mode="val", pixel_masks=[torch.ones(2, 2, dtype=torch.bool)] * num_train)
-    with pytest.raises(ValueError, match=f"1 pixel masks for {num_train} training images"):
-        config.setup(device="cpu", test_mode="val", pixel_masks=masks[:1])

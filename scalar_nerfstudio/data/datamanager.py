@@ -15,7 +15,7 @@ from __future__ import annotations
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from functools import cached_property
-from typing import Any, Dict, Iterator, List, Literal, NamedTuple, Optional, Sequence, Tuple, Type, Union
+from typing import Iterator, List, NamedTuple, Optional, Tuple, Type
 
 import numpy as np
 import numpy.typing as npt
@@ -93,18 +93,6 @@ class ScalarInputDataset(InputDataset):
 
     alpha_background: Tuple[float, float, float] = (1.0, 1.0, 1.0)
     """Colour transparent pixels are composited over (set by the datamanager)."""
-    pixel_masks: Optional[Sequence[Tensor]] = None
-    """Per image a [H, W] bool map of the pixels that may be sampled (set by the datamanager for a block
-    trained on the rays it owns); combined with the scene's own masks."""
-
-    def get_data(self, image_idx: int, image_type: Literal["uint8", "float32"] = "float32") -> Dict:
-        data = super().get_data(image_idx, image_type)
-        if self.pixel_masks is not None:
-            owned = self.pixel_masks[image_idx].to(torch.bool)[..., None]  # [H, W, 1]
-            if owned.shape[:2] != data["image"].shape[:2]:
-                raise ValueError(f"pixel mask of image {image_idx} is {list(owned.shape[:2])}, the image {list(data['image'].shape[:2])}")
-            data["mask"] = owned & data["mask"].to(torch.bool) if "mask" in data else owned
-        return data
 
     def get_numpy_image(self, image_idx: int) -> npt.NDArray[np.uint8]:
         with Image.open(self._dataparser_outputs.image_filenames[image_idx]) as pil_image:
@@ -162,28 +150,11 @@ class ScalarDataManager(VanillaDataManager[ScalarInputDataset]):
 
     config: ScalarDataManagerConfig
 
-    def __init__(self, config: ScalarDataManagerConfig, device: Union[torch.device, str] = "cpu",
-                 test_mode: Literal["test", "val", "inference"] = "val", world_size: int = 1, local_rank: int = 0,
-                 pixel_masks: Optional[Sequence[Tensor]] = None, **kwargs: Any) -> None:
-        """``pixel_masks``: per training image (of the subset) a [H, W] bool map of the pixels its rays
-        may be sampled from (a block that trains on the rays it owns); None: every pixel."""
-        self.pixel_masks = pixel_masks
-        super().__init__(config, device=device, test_mode=test_mode, world_size=world_size, local_rank=local_rank, **kwargs)
-
     def create_train_dataset(self) -> ScalarInputDataset:
         """Training dataset of the subset (only its images are ever read)."""
         if self.config.image_subset is not None:
             self.train_dataparser_outputs = subset_dataparser_outputs(self.train_dataparser_outputs, self.config.image_subset)
-        dataset = self._with_background(super().create_train_dataset())
-        if self.pixel_masks is not None:
-            if len(self.pixel_masks) != len(dataset):
-                raise ValueError(f"{len(self.pixel_masks)} pixel masks for {len(dataset)} training images")
-            heights, widths = dataset.cameras.height.reshape(-1).tolist(), dataset.cameras.width.reshape(-1).tolist()
-            for index, mask in enumerate(self.pixel_masks):  # before any image is read
-                if tuple(mask.shape) != (heights[index], widths[index]):
-                    raise ValueError(f"pixel mask of image {index} is {list(mask.shape)}, the image [{heights[index]}, {widths[index]}]")
-            dataset.pixel_masks = self.pixel_masks
-        return dataset
+        return self._with_background(super().create_train_dataset())
 
     def create_eval_dataset(self) -> ScalarInputDataset:
         return self._with_background(super().create_eval_dataset())

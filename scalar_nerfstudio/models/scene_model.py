@@ -56,8 +56,6 @@ from scalar_nerfstudio.blocks.palette import BLOCK_PALETTE, GLOBAL_COLOUR
 DecoderMode = Literal["finetune", "frozen", "independent"]
 BlockInit = Literal["global", "fresh", "fitted"]
 BLOCK_INITS: Tuple[str, ...] = get_args(BlockInit)
-BlockRays = Literal["cameras", "surface"]
-BLOCK_RAYS: Tuple[str, ...] = get_args(BlockRays)
 #: A block's region radius never drops below this (normalised scene units; cameras span [-1, 1]).
 MIN_REGION_RADIUS = 0.05
 
@@ -174,16 +172,7 @@ class ScalarSceneModel(NormalsOutput, Model):
         if self.block_init == "fitted" and self.decoder_mode == "independent":
             raise ValueError("block_init fitted fits a block's table to the global model through the global decoder, "
                              "which decoder_mode independent does not copy: use decoder_mode finetune or frozen, or block_init fresh")
-        self.block_rays: BlockRays = self.kwargs.get("block_rays", "cameras")
-        if self.block_rays not in BLOCK_RAYS:
-            raise ValueError(f"block_rays {self.block_rays!r}: expected one of {', '.join(BLOCK_RAYS)}")
-        self.block_image_indices: Dict[int, Tuple[int, ...]] = {
-            b.index: tuple(range(self.num_train_data)) if self.block_rays == "surface" else tuple(b.image_indices)
-            for b in self.split.blocks
-        }
-        """The training images each block's rays come from (its appearance embeddings' rows): the block's
-        own images, or with ``block_rays`` surface every training image (each masked to the block's rays)."""
-        num_images: Dict[int, int] = {b: len(rows) for b, rows in self.block_image_indices.items()}  # sizes appearance embeddings
+        num_images: Dict[int, int] = {b.index: len(b.image_indices) for b in self.split.blocks}  # sizes appearance embeddings
         self.fusion_mode: ParsedFusionMode = parse_fusion_mode(self.config.fusion, self.split.num_blocks)
         self.rendered_models: set = set()
         """Models (block indices, "global") rendered since the last camera started (for reports)."""
@@ -422,7 +411,7 @@ class ScalarSceneModel(NormalsOutput, Model):
 
     def _copy_appearance(self, block: int, model: ScalarModel) -> None:
         """Give block ``block``'s model the global model's appearance embeddings of the block's images."""
-        rows = torch.tensor(self.block_image_indices[block], dtype=torch.long, device=model.field.appearance.weight.device)
+        rows = torch.tensor(self.split.blocks[block].image_indices, dtype=torch.long, device=model.field.appearance.weight.device)
         model.field.appearance.weight.copy_(self.global_model.field.appearance.weight[rows])
 
     def started_block_ids(self) -> List[int]:
@@ -560,20 +549,6 @@ class ScalarSceneModel(NormalsOutput, Model):
             usable = observed_at(self.block_observation[block_ids], points).to(scores.device)  # [K', R]
             scores = torch.where(usable, scores, torch.full_like(scores, float("inf")))
         return select_blocks(scores, limit if limit > 0 else num_blocks, usable), scores
-
-    @torch.no_grad()
-    def surface_owners(self, ray_bundle: RayBundle) -> Tensor:
-        """[R] long: per ray, the block whose region best holds the point at the global model's depth
-        (the ``surface`` rule with one block per ray over every block, ties to the lower index): the
-        block that trains on the ray with ``block_rays`` surface, and renders it with that fusion."""
-        bundle = ray_bundle.reshape((-1,))
-        if bundle.nears is None and self.collider is not None:
-            bundle = self.collider(bundle)
-        depth = self.global_model.render_depth_only(bundle, source=self.config.selection_depth)["depth"]
-        points = surface_points(bundle.origins.reshape(-1, 3), bundle.directions.reshape(-1, 3), depth)
-        all_blocks = list(range(self.split.num_blocks))
-        scores = region_scores(points, self.block_centres[all_blocks].to(points.device), self.block_radii[all_blocks].to(points.device))
-        return select_blocks(scores, 1).to(torch.uint8).argmax(dim=0)
 
     def _render_block_rays(self, block: int, ray_bundle: RayBundle, rays: Tensor, normals: bool) -> Dict[str, Tensor]:
         """Block ``block``'s render of the rays where ``rays`` [R] is True; NaN on the others."""
