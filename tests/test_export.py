@@ -280,7 +280,10 @@ def test_fused_normals_follow_the_fusion(scene: Path, tmp_path: Path) -> None:
                 winner = outputs["block_winner"].reshape(-1).long()
                 assert (winner >= 0).all()
                 expected = torch.stack([own[int(w)][i] for i, w in enumerate(winner)])
-                assert torch.equal(outputs["normals"], expected), mode
+                if expected.device.type == "cpu":
+                    assert torch.equal(outputs["normals"], expected), mode  # the winner's normal, bit for bit
+                else:  # on CUDA the block renders a subset of the rays with other kernel sizes: float32 rounding apart
+                    assert torch.allclose(outputs["normals"], expected, rtol=0.0, atol=1e-4), mode
             else:
                 assert torch.isfinite(normals).all()
         assert "normals" not in model.get_outputs_for_camera(trainer.pipeline.datamanager.train_dataset.cameras[0:1])
