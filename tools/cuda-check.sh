@@ -14,9 +14,10 @@
 #
 # Stage 3 runs the tests in parallel when pytest-xdist is installed (one thread each, so that the
 # workers do not fight over the cores) and stops at the third failure, printing the tracebacks (a
-# stage killed by its time limit prints none). Seen on an H200 (2026-11-26): the training benchmark
-# ran at 100k rays/s; tests/test_hash_encoding.py::test_cpp_rejects_bad_inputs crashed the process
-# there (see csrc/check.h, since changed); the rest is in docs/benchmarks.md, "On a GPU".
+# stage killed by its time limit prints none). Seen on an H200 (2026-11-26, twice): the training
+# benchmark ran at 77-100k rays/s; test_cpp_rejects_bad_inputs crashed the process the first time
+# and passed the second (csrc/check.h); the quick subset: 473 of 474 passed, the last one since
+# changed. The rest is in docs/benchmarks.md, sections 6 and 7.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 out=${OUT:-outputs/cuda-check}
