@@ -176,3 +176,25 @@ def test_a_checkpoint_with_every_block_in_it_still_loads(tmp_path: Path) -> None
     assert all(loaded.block_is_resident(b) for b in range(NUM_BLOCKS)), "blocks only in the checkpoint are pinned, never dropped"
     with pytest.raises(RuntimeError, match="not saved to its file"):
         loaded.release_block(0)
+
+
+def test_a_block_loaded_from_its_file_keeps_its_render_grid(tmp_path: Path, recwarn: pytest.WarningsRecorder) -> None:
+    """A finished block's render grid (estimated from its final field) is in its file and is used
+    again when the block is loaded to render, without a warning; it used to be dropped on every load
+    (its empty shell was taken for a grid of another size), so stored blocks rendered with their
+    training grid."""
+    model = _model(max_resident_blocks=1)
+    model.attach_block_store(tmp_path)
+    model.begin_block(0)
+    block = model.phase_model(0)
+    block.seed_occupancy_from(model.global_model)  # past the warm-up: its last step builds the render grid
+    block.finish_training()
+    assert bool(block.render_occupancy_ready)
+    grid = block.render_occupancy.occupied.clone()
+    model.store_block(0)
+    assert is_released(model.blocks["0"])
+    loaded = model.resident_block(0)
+    assert bool(loaded.render_occupancy_ready) and torch.equal(loaded.render_occupancy.occupied, grid)
+    loaded.eval()
+    assert loaded.samples_grid() is loaded.render_occupancy
+    assert not [w for w in recwarn.list if "render grid" in str(w.message)]

@@ -332,9 +332,13 @@ class ScalarModel(NormalsOutput, Model):
         grid is taken as not built, and renders use the training grid (a warning says so for a
         mismatch). Returns ``state`` itself, changed in place."""
         head = prefix + "render_occupancy."
-        expected = {} if self.render_occupancy is None else {head + k: v for k, v in self.render_occupancy.state_dict().items()}
+        expected: Dict[str, torch.Size] = {}
+        if self.render_occupancy is not None:  # the grid's shapes as built: a block's shell holds its tensors empty
+            with torch.device("meta"):
+                template = OccupancyGrid(resolution=self.render_occupancy.resolution)
+            expected = {head + k: v.shape for k, v in template.state_dict().items()}
         given = {k: v for k, v in state.items() if k.startswith(head)}
-        fits = set(given) == set(expected) and all(given[k].shape == expected[k].shape for k in given)
+        fits = set(given) == set(expected) and all(given[k].shape == expected[k] or given[k].numel() == 0 for k in given)
         if given and not fits:
             warnings.warn(f"the saved render grid ({len(next(iter(given.values())))} cells) does not fit this model's "
                           f"({'none' if self.render_occupancy is None else self.render_occupancy.resolution ** 3} cells): "
