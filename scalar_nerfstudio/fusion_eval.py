@@ -117,7 +117,10 @@ def evaluate_fusion_modes(
 def markdown_table(table: Dict[str, Dict[str, float]]) -> str:
     """The per-mode rows as a Markdown table (and a line per mode on block selection)."""
     has_lpips = any("lpips" in row for row in table.values())
-    header = "| fusion | PSNR | SSIM |" + (" LPIPS |" if has_lpips else "") + " ms / image | models rendered / image | block renders / ray |"
+    has_depth = any("depth_delta1" in row for row in table.values())  # a scene with true depth (the town)
+    header = ("| fusion | PSNR | SSIM |" + (" LPIPS |" if has_lpips else "")
+              + (" depth within 25 % | median depth error |" if has_depth else "")
+              + " ms / image | models rendered / image | block renders / ray |")
     lines = [header, "|" + "---|" * (header.count("|") - 1)]
     single = table.get("global-only", {}).get("ms_per_image")
     for mode, row in table.items():
@@ -126,6 +129,8 @@ def markdown_table(table: Dict[str, Dict[str, float]]) -> str:
         cells = [mode, f"{row['psnr']:.2f}", f"{row['ssim']:.3f}"]
         if has_lpips:
             cells.append(f"{row['lpips']:.3f}" if "lpips" in row else "-")
+        if has_depth:
+            cells += [f"{row['depth_delta1']:.1%}", f"{row['depth_median_rel_error']:.1%}"] if "depth_delta1" in row else ["-", "-"]
         models = f"{row['blocks_rendered_per_image']:.2f} blocks" + (" + global" if row.get("global_model_rendered") else "")
         time_cell = f"{row['ms_per_image']:.0f}" + (f" ({row['ms_per_image'] / single:.2f}x)" if single else "")
         cells += [time_cell, models, f"{row.get('block_renders_per_ray', 0.0):.2f}"]
@@ -142,6 +147,9 @@ def markdown_table(table: Dict[str, Dict[str, float]]) -> str:
             f"identical, largest pixel difference {s['max_abs_pixel_difference']:.4f}, lowest PSNR between them "
             f"{s['min_psnr_between_renders']:.1f} dB."
         )
+    if has_depth:
+        lines += ["", "Depth against the scene's true depth, over its pixels of known depth (mean over the images): the share "
+                  "within a factor 1.25 of the truth, and the median of |depth - truth| / truth."]
     if not has_lpips:
         lines.append("")
         lines.append("LPIPS skipped: torchvision's AlexNet weights are not on disk (nothing is downloaded).")

@@ -475,7 +475,8 @@ def _image_names(filenames: List[Path], data: Optional[Path]) -> List[str]:
 
 
 def format_eval_metrics(metrics: Dict[str, float], fusion: str) -> str:
-    """One line: the fusion, PSNR / SSIM / LPIPS (with std when present) and time per image."""
+    """One line: the fusion, PSNR / SSIM / LPIPS (with std when present), the depth metrics (scenes with
+    true depth) and time per image."""
     parts = []
     for key, label, digits in (("psnr", "PSNR", 2), ("ssim", "SSIM", 3), ("lpips", "LPIPS", 3)):
         if key in metrics:
@@ -483,5 +484,7 @@ def format_eval_metrics(metrics: Dict[str, float], fusion: str) -> str:
             parts.append(f"{label} {metrics[key]:.{digits}f}{std}")
     if "lpips" not in metrics:
         parts.append("LPIPS skipped")
+    if "depth_delta1" in metrics:  # a scene with true depth (the town)
+        parts.append(f"depth within 25 % {metrics['depth_delta1']:.1%}, median depth error {metrics['depth_median_rel_error']:.1%}")
     timing = f", {1.0 / metrics['fps']:.2f} s/image" if metrics.get("fps") else ""
     return f"eval ({fusion} fusion): " + ", ".join(parts) + timing

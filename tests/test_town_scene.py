@@ -14,6 +14,7 @@ from typing import List
 
 import numpy as np
 import pytest
+import torch
 
 from scalar_nerfstudio.data.town_scene import (
     DEPTH_PNG_MAX_M,
@@ -326,6 +327,46 @@ def test_nerfstudio_parses_the_scene_and_cameras_walk_the_streets(tiny_scene: Pa
     known = png > 0
     assert known.mean() > 0.3
     assert np.median(np.abs(depth[known] * cos[known] - png[known])) < 2e-3
+
+
+def test_eval_images_carry_the_true_ray_depth_and_training_images_do_not(tiny_scene: Path) -> None:
+    """The datamanager gives each eval image its true distance along every pixel's ray, in the
+    model's units (what evaluation scores the rendered depth against): the generator's exact ray
+    depth, within the PNG's millimetre, 0 for the sky. Training batches carry no depth."""
+    from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
+
+    from scalar_nerfstudio.data.datamanager import ScalarDataManagerConfig
+
+    config = ScalarDataManagerConfig(
+        data=tiny_scene, dataparser=NerfstudioDataParserConfig(eval_mode="interval", eval_interval=8), train_num_rays_per_batch=64)
+    datamanager = config.setup(device="cpu", test_mode="test")
+    assert datamanager.eval_dataset.load_ray_depth and not datamanager.train_dataset.load_ray_depth
+    _, train_batch = datamanager.next_train(0)
+    assert "ray_depth" not in train_batch
+
+    outputs = datamanager.eval_dataset._dataparser_outputs
+    transform = outputs.dataparser_transform.double().numpy()
+    scale = float(outputs.dataparser_scale)
+    town = load_town(tiny_scene)
+    def check(camera, ray_depth: torch.Tensor) -> bool:
+        """ray_depth [H, W, 1] against the generator's exact depth along nerfstudio's rays of ``camera``;
+        whether the image sees the sky."""
+        assert ray_depth.shape == (TINY.height, TINY.width, 1) and ray_depth.dtype == torch.float32
+        rays = camera.generate_rays(camera_indices=0, keep_shape=True)
+        origins = (rays.origins.reshape(-1, 3).double().numpy() / scale - transform[:, 3]) @ transform[:, :3]
+        directions = rays.directions.reshape(-1, 3).double().numpy() @ transform[:, :3]
+        _, exact = render_town_rays(origins, directions, town)  # [H * W] metres along the ray, inf: sky
+        loaded = ray_depth.reshape(-1).double().numpy() / scale
+        known = loaded > 0
+        assert known.mean() > 0.3, "ground and walls"
+        assert (~np.isfinite(exact[~known]) | (exact[~known] > DEPTH_PNG_MAX_M)).all(), "unknown only where the PNG holds no depth"
+        np.testing.assert_allclose(loaded[known], exact[known], atol=2e-3, rtol=1e-4)
+        return bool((~known).any())
+
+    for camera, batch in datamanager.fixed_indices_eval_dataloader:  # what evaluation reads
+        check(camera, batch["ray_depth"])
+    train = datamanager.train_dataset  # more views, some with sky: the same conversion
+    assert any([check(train.cameras[i : i + 1], train.ray_depth(i)) for i in range(6)]), "some frame should see the sky"
 
 
 def test_all_cameras_on_streets_for_the_default_town() -> None:

@@ -113,7 +113,8 @@ def setup_trainer(config):
 
 
 def _evaluate(pipeline) -> Dict[str, float]:
-    """Mean PSNR / SSIM (/ LPIPS) over the eval images, and render ms per image."""
+    """Mean PSNR / SSIM (/ LPIPS; / depth metrics where the scene has true depth) over the eval
+    images, and render ms per image."""
     pipeline.eval()
     start = time.perf_counter()
     metrics = pipeline.get_average_eval_image_metrics()
@@ -123,6 +124,9 @@ def _evaluate(pipeline) -> Dict[str, float]:
     result = {"psnr": float(metrics["psnr"]), "ssim": float(metrics["ssim"]), "render_ms_per_image": ms}
     if "lpips" in metrics and metrics["lpips"] == metrics["lpips"]:
         result["lpips"] = float(metrics["lpips"])
+    for key in ("depth_delta1", "depth_median_rel_error"):  # scenes with true depth (the town)
+        if key in metrics:
+            result[key] = float(metrics[key])
     return result
 
 

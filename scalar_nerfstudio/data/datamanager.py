@@ -8,6 +8,11 @@ loaded into memory, so memory stays bounded by the largest block, not by the num
 Images are read as 8-bit RGB whatever their kind (``ScalarInputDataset``): grayscale, palette,
 16-bit and CMYK images are converted, and transparent ones composited over ``alpha_background``, in
 memory (the scene check in ``data/validation.py`` accepts them and logs one line saying so).
+
+Where the scene has depth images (``depth_file_path`` in transforms.json, as the generated town
+writes), the eval images carry them as ``ray_depth`` (distance along each pixel's ray, in the
+model's units), so evaluation also scores the geometry (:func:`scalar_nerfstudio.metrics.depth_metrics`).
+Training batches never load them: no method here trains on depth.
 """
 
 from __future__ import annotations
@@ -15,7 +20,7 @@ from __future__ import annotations
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from functools import cached_property
-from typing import Iterator, List, NamedTuple, Optional, Tuple, Type
+from typing import Dict, Iterator, List, NamedTuple, Optional, Tuple, Type
 
 import numpy as np
 import numpy.typing as npt
@@ -93,6 +98,41 @@ class ScalarInputDataset(InputDataset):
 
     alpha_background: Tuple[float, float, float] = (1.0, 1.0, 1.0)
     """Colour transparent pixels are composited over (set by the datamanager)."""
+    load_ray_depth: bool = False
+    """Add ``ray_depth`` [H, W, 1] to each image's data from the scene's depth images (set by the
+    datamanager for the eval images, when the scene has them)."""
+
+    def get_metadata(self, data: Dict) -> Dict:
+        """``ray_depth`` [H, W, 1] float32 when :attr:`load_ray_depth` (else nothing)."""
+        if not self.load_ray_depth:
+            return {}
+        return {"ray_depth": self.ray_depth(int(data["image_idx"]))}
+
+    def ray_depth(self, image_idx: int) -> Tensor:
+        """[H, W, 1] float32 distance from the camera centre to the surface along each pixel's ray, in
+        the dataparser's units (what the models' ``depth`` output holds); 0 where the depth image
+        says unknown (0: sky, or farther than its format holds).
+
+        The depth images hold z-depth (along the optical axis, nerfstudio's convention) in units of
+        the dataparser's ``depth_unit_scale_factor`` metres; each pixel's ray length per unit of
+        z-depth (``directions_norm``) comes from the camera, so distortion is accounted for.
+        """
+        filenames = self._dataparser_outputs.metadata.get("depth_filenames")
+        if filenames is None:
+            raise ValueError("this scene has no depth images (no depth_file_path in transforms.json)")
+        unit = float(self._dataparser_outputs.metadata.get("depth_unit_scale_factor", 1e-3))
+        with Image.open(filenames[image_idx]) as depth_image:
+            camera = self.cameras[image_idx]
+            size = (int(camera.width), int(camera.height))
+            if depth_image.size != size:  # a downscaled dataset: nearest, so unknown pixels stay unknown
+                depth_image = depth_image.resize(size, resample=Image.Resampling.NEAREST)
+            z_depth = torch.from_numpy(np.asarray(depth_image, dtype=np.float32).copy())  # [H, W]
+        if z_depth.dim() != 2:
+            raise ValueError(f"{filenames[image_idx]}: a depth image must have one channel, got shape {tuple(z_depth.shape)}")
+        rays = self.cameras[image_idx : image_idx + 1].generate_rays(camera_indices=0, keep_shape=True)
+        norms = rays.metadata["directions_norm"].reshape(z_depth.shape).float()  # [H, W]
+        scale = unit * float(self._dataparser_outputs.dataparser_scale)
+        return torch.where(z_depth > 0, z_depth * scale * norms, torch.zeros_like(z_depth))[..., None]
 
     def get_numpy_image(self, image_idx: int) -> npt.NDArray[np.uint8]:
         with Image.open(self._dataparser_outputs.image_filenames[image_idx]) as pil_image:
@@ -157,7 +197,9 @@ class ScalarDataManager(VanillaDataManager[ScalarInputDataset]):
         return self._with_background(super().create_train_dataset())
 
     def create_eval_dataset(self) -> ScalarInputDataset:
-        return self._with_background(super().create_eval_dataset())
+        dataset = self._with_background(super().create_eval_dataset())
+        dataset.load_ray_depth = dataset.metadata.get("depth_filenames") is not None
+        return dataset
 
     def image_cache_budget_bytes(self) -> float:
         """The decoded-image budget: ``image_cache_mib``, or a quarter of the available memory."""

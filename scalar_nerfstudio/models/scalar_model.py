@@ -33,7 +33,7 @@ from torch import Tensor
 from torch.nn import Parameter
 
 from scalar_nerfstudio.fields.scalar_field import ScalarField, ScalarFieldConfig, contract_rays_to_unit_cube, contract_to_unit_cube, to_region_frame, unit_cube_to_world
-from scalar_nerfstudio.metrics import ImageMetrics, psnr
+from scalar_nerfstudio.metrics import ImageMetrics, depth_metrics, psnr
 from scalar_nerfstudio.model_components.rendering import (
     alphas_from_densities,
     composite,
@@ -648,10 +648,13 @@ class ScalarModel(NormalsOutput, Model):
     def get_image_metrics_and_images(
         self, outputs: Dict[str, Tensor], batch: Dict[str, Tensor]
     ) -> Tuple[Dict[str, float], Dict[str, Tensor]]:
-        """PSNR, SSIM (and LPIPS when its weights are on disk) of a full rendered image [H, W, 3]."""
+        """PSNR, SSIM (and LPIPS when its weights are on disk) of a full rendered image [H, W, 3]; with
+        the scene's true depth in the batch (``ray_depth`` [H, W, 1]), also :func:`depth_metrics`."""
         predicted = outputs["rgb"].clamp(0.0, 1.0)
         target = self._target_rgb(batch, predicted)
         metrics = self.image_metrics(predicted, target)
+        if "ray_depth" in batch:  # the scene's true depth (eval images of a scene with depth images)
+            metrics.update(depth_metrics(outputs["depth"], batch["ray_depth"]))
         images = {"img": torch.cat([target, predicted], dim=1), "depth": outputs["depth"], "accumulation": outputs["accumulation"]}
         if "normals" in outputs:
             images["normals"] = outputs["normals"]
