@@ -160,6 +160,25 @@ def test_decoder_width_option_reaches_every_variant_of_ours_and_the_report(tmp_p
     assert "decoder width not recorded" in markdown(config, [], {}, "cmd", "2 CPU cores", {})
 
 
+def test_the_report_shows_depth_where_the_scene_has_it(tmp_path: Path) -> None:
+    """On a scene with true depth (the town) results.md gets a depth column from the runs' figures;
+    elsewhere (castle-P30, fox) the table is as before."""
+    from scalar_nerfstudio.benchmarking.report import markdown, rows
+
+    def result(psnr: float, depth=None) -> dict:
+        final = {"psnr": psnr, "ssim": 0.5, "render_ms_per_image": 10.0}
+        if depth is not None:
+            final["depth_delta1"] = depth
+        return {"final": final, "steps": 100, "train_s": 1.0, "train_rays_per_s": 1.0, "parameters": 1, "peak_rss_mib": 1.0}
+
+    config = BenchmarkConfig(data=tmp_path, variants=("ngp19", "ngp21"))
+    with_depth = markdown(config, rows({"ngp19": result(18.0, 0.318), "ngp21": result(19.1, 0.456)}), {}, "cmd", "2 CPU cores")
+    assert "depth within 25 % |" in with_depth
+    assert "| 19.10 | 0.500 | 45.6% |" in with_depth and "| 18.00 | 0.500 | 31.8% |" in with_depth
+    without = markdown(config, rows({"ngp19": result(18.0), "ngp21": result(19.1)}), {}, "cmd", "2 CPU cores")
+    assert "depth within" not in without and "| 19.10 | 0.500 | 10 |" in without
+
+
 def test_a_run_renders_with_the_first_fusion_it_reports(tmp_path: Path) -> None:
     """The first fusion of a variant labels its curve, so the run must render with it, whatever the
     model's default (the paper's variant reports ``global`` while the default is ``nearest``); the

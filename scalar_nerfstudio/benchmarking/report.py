@@ -85,6 +85,7 @@ def rows(results: Dict[str, Dict[str, Any]], notes: Optional[Dict[str, str]] = N
                 "variant": name, "fusion": fusion, "label": labels_.get((name, fusion_key), f"{name} ({fusion})"),
                 "steps": result["steps"], "train_s": result["train_s"], "train_rays_per_s": result["train_rays_per_s"],
                 "psnr": metrics["psnr"], "ssim": metrics["ssim"], "lpips": metrics.get("lpips"),
+                "depth_delta1": metrics.get("depth_delta1"),
                 "render_ms_per_image": metrics["render_ms_per_image"], "parameters": result["parameters"],
                 "peak_rss_mib": result["peak_rss_mib"], "num_blocks": result.get("num_blocks"),
                 "parallel_train_s": result.get("parallel_train_s"),
@@ -179,15 +180,24 @@ def markdown(config: BenchmarkConfig, table: List[Dict[str, Any]], notes: Dict[s
         + (f"Seed {seed} (`machine.seed` of every run). " if seed is not None else "Runs not seeded (written before the benchmark seeded them). ") +
         "LPIPS: not computed for nerfacto (its weights need a download); for ours only when the weights are available offline.",
         "",
-        "| variant | fusion | steps | train s | rays/s | PSNR | SSIM | render ms/img | parameters | peak RSS MiB | Pareto (params / time) |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    has_depth = any(r.get("depth_delta1") is not None for r in table)  # a scene with true depth (the town)
+    depth_header = " depth within 25 % |" if has_depth else ""
+    lines += [
+        f"| variant | fusion | steps | train s | rays/s | PSNR | SSIM |{depth_header} render ms/img | parameters | peak RSS MiB | Pareto (params / time) |",
+        "|---|---|---|---|---|---|---|" + ("---|" if has_depth else "") + "---|---|---|---|",
     ]
     for r in sorted(table, key=lambda r: -r["psnr"]):
         front = f"{'yes' if r['pareto_parameters'] else '-'} / {'yes' if r['pareto_time'] else '-'}"
+        depth = (f" {r['depth_delta1']:.1%} |" if r.get("depth_delta1") is not None else " - |") if has_depth else ""
         lines.append(
             f"| {r['label']} | {r['fusion']} | {r['steps']} | {r['train_s']:.0f} | {r['train_rays_per_s']:.0f} | {r['psnr']:.2f} | "
-            f"{r['ssim']:.3f} | {r['render_ms_per_image']:.0f} | {r['parameters'] / 1e6:.1f} M | {r['peak_rss_mib']:.0f} | {front} |"
+            f"{r['ssim']:.3f} |{depth} {r['render_ms_per_image']:.0f} | {r['parameters'] / 1e6:.1f} M | {r['peak_rss_mib']:.0f} | {front} |"
         )
+    if has_depth:
+        lines += ["", "Depth within 25 %: the share of the held-out views' pixels of known depth whose rendered depth is "
+                  "within a factor 1.25 of the scene's true depth (mean over the views): a model that renders colour "
+                  "from haze in the wrong place scores low here, whatever its PSNR."]
     if notes:
         lines += ["", *[f"- {name}: {note}" for name, note in notes.items()]]
     lines += equal_wall_clock(results or {}, table, config.log2_table)
