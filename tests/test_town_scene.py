@@ -369,6 +369,26 @@ def test_eval_images_carry_the_true_ray_depth_and_training_images_do_not(tiny_sc
     assert any([check(train.cameras[i : i + 1], train.ray_depth(i)) for i in range(6)]), "some frame should see the sky"
 
 
+def test_missing_depth_files_skip_the_depth_metrics_with_a_message(tiny_scene: Path, tmp_path: Path, capsys) -> None:
+    """A scene whose depth files are not all there (a downscaled load looks for depths_N/) still
+    evaluates: without depth, and saying why, instead of failing in the middle of ns-eval."""
+    import shutil
+
+    from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
+
+    from scalar_nerfstudio.data.datamanager import ScalarDataManagerConfig
+
+    scene = tmp_path / "scene"
+    shutil.copytree(tiny_scene, scene)
+    (scene / "depths" / "frame_00008.png").unlink()  # an eval frame's
+    config = ScalarDataManagerConfig(data=scene, dataparser=NerfstudioDataParserConfig(eval_mode="interval", eval_interval=8))
+    datamanager = config.setup(device="cpu", test_mode="test")
+    assert not datamanager.eval_dataset.load_ray_depth
+    assert all("ray_depth" not in batch for _, batch in datamanager.fixed_indices_eval_dataloader)
+    log = " ".join(capsys.readouterr().out.split())
+    assert "depth metrics skipped: 1 of the eval images' depth files are missing" in log and "frame_00008.png" in log
+
+
 def test_all_cameras_on_streets_for_the_default_town() -> None:
     town = build_town(TownConfig())
     centres = town_camera_poses(town)[:, :3, 3]

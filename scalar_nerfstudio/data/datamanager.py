@@ -20,6 +20,7 @@ from __future__ import annotations
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from functools import cached_property
+from pathlib import Path
 from typing import Dict, Iterator, List, NamedTuple, Optional, Tuple, Type
 
 import numpy as np
@@ -198,7 +199,12 @@ class ScalarDataManager(VanillaDataManager[ScalarInputDataset]):
 
     def create_eval_dataset(self) -> ScalarInputDataset:
         dataset = self._with_background(super().create_eval_dataset())
-        dataset.load_ray_depth = dataset.metadata.get("depth_filenames") is not None
+        depth_files = dataset.metadata.get("depth_filenames")
+        missing = [path for path in depth_files or () if not Path(path).is_file()]
+        if missing:  # e.g. images_N/ for a downscaled load without depths_N/ beside it
+            CONSOLE.print(f"[yellow]depth metrics skipped: {len(missing)} of the eval images' depth files are missing "
+                          f"(first: {missing[0]})")
+        dataset.load_ray_depth = depth_files is not None and not missing
         return dataset
 
     def image_cache_budget_bytes(self) -> float:
