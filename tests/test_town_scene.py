@@ -389,6 +389,22 @@ def test_missing_depth_files_skip_the_depth_metrics_with_a_message(tiny_scene: P
     assert "depth metrics skipped: 1 of the eval images' depth files are missing" in log and "frame_00008.png" in log
 
 
+def test_an_unreadable_depth_file_is_named(tiny_scene: Path, tmp_path: Path) -> None:
+    """An eval image's depth file that exists but cannot be read stops evaluation with its name."""
+    import shutil
+
+    from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
+
+    from scalar_nerfstudio.data.datamanager import ScalarDataManagerConfig
+
+    scene = tmp_path / "scene"
+    shutil.copytree(tiny_scene, scene)
+    (scene / "depths" / "frame_00000.png").write_bytes(b"not a png")
+    config = ScalarDataManagerConfig(data=scene, dataparser=NerfstudioDataParserConfig(eval_mode="interval", eval_interval=8))
+    with pytest.raises(ValueError, match=r"frame_00000\.png: cannot read this depth image"):
+        config.setup(device="cpu", test_mode="test")  # nerfstudio reads the eval images while setting up
+
+
 def test_all_cameras_on_streets_for_the_default_town() -> None:
     town = build_town(TownConfig())
     centres = town_camera_poses(town)[:, :3, 3]

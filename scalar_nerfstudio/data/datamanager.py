@@ -30,6 +30,7 @@ from PIL import Image
 from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
 from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManager, VanillaDataManagerConfig
 from nerfstudio.data.datasets.base_dataset import InputDataset
+from nerfstudio.data.utils.data_utils import get_depth_image_from_path
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor
 
@@ -121,19 +122,17 @@ class ScalarInputDataset(InputDataset):
         filenames = self._dataparser_outputs.metadata.get("depth_filenames")
         if filenames is None:
             raise ValueError("this scene has no depth images (no depth_file_path in transforms.json)")
-        unit = float(self._dataparser_outputs.metadata.get("depth_unit_scale_factor", 1e-3))
-        with Image.open(filenames[image_idx]) as depth_image:
-            camera = self.cameras[image_idx]
-            size = (int(camera.width), int(camera.height))
-            if depth_image.size != size:  # a downscaled dataset: nearest, so unknown pixels stay unknown
-                depth_image = depth_image.resize(size, resample=Image.Resampling.NEAREST)
-            z_depth = torch.from_numpy(np.asarray(depth_image, dtype=np.float32).copy())  # [H, W]
-        if z_depth.dim() != 2:
-            raise ValueError(f"{filenames[image_idx]}: a depth image must have one channel, got shape {tuple(z_depth.shape)}")
+        path = Path(filenames[image_idx])
+        camera = self.cameras[image_idx]
+        height, width = int(camera.height), int(camera.width)
+        scale = float(self._dataparser_outputs.metadata.get("depth_unit_scale_factor", 1e-3)) * float(self._dataparser_outputs.dataparser_scale)
+        try:  # nerfstudio's reader (16/32-bit images, .npy); resized by nearest, so unknown pixels stay unknown
+            z_depth = get_depth_image_from_path(path, height, width, scale)[..., 0].float()  # [H, W]
+        except Exception as error:  # cv2 gives None for a file it cannot read, and fails on that
+            raise ValueError(f"{path}: cannot read this depth image ({type(error).__name__}: {error})") from error
         rays = self.cameras[image_idx : image_idx + 1].generate_rays(camera_indices=0, keep_shape=True)
         norms = rays.metadata["directions_norm"].reshape(z_depth.shape).float()  # [H, W]
-        scale = unit * float(self._dataparser_outputs.dataparser_scale)
-        return torch.where(z_depth > 0, z_depth * scale * norms, torch.zeros_like(z_depth))[..., None]
+        return torch.where(z_depth > 0, z_depth * norms, torch.zeros_like(z_depth))[..., None]
 
     def get_numpy_image(self, image_idx: int) -> npt.NDArray[np.uint8]:
         with Image.open(self._dataparser_outputs.image_filenames[image_idx]) as pil_image:
