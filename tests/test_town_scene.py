@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -292,6 +293,26 @@ def test_depth_png_round_trips(tiny_scene: Path) -> None:
 # ----------------------------------------------------------------------------- nerfstudio
 
 
+def _rays_in_town_frame(rays, outputs) -> tuple:
+    """nerfstudio's rays (dataparser frame) -> ([N, 3] origins, [N, 3] directions) in the written town's
+    metres, undoing the dataparser's orientation, centring and scaling (``outputs``: its outputs)."""
+    transform = outputs.dataparser_transform.double().numpy()
+    scale = float(outputs.dataparser_scale)
+    origins = (rays.origins.reshape(-1, 3).double().numpy() / scale - transform[:, 3]) @ transform[:, :3]
+    directions = rays.directions.reshape(-1, 3).double().numpy() @ transform[:, :3]
+    return origins, directions
+
+
+def _datamanager(scene: Path, **options):
+    """The datamanager ns-train builds for ``scene`` (every 8th frame held out), set up for evaluation."""
+    from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
+
+    from scalar_nerfstudio.data.datamanager import ScalarDataManagerConfig
+
+    config = ScalarDataManagerConfig(data=scene, dataparser=NerfstudioDataParserConfig(eval_mode="interval", eval_interval=8), **options)
+    return config.setup(device="cpu", test_mode="test")
+
+
 def test_nerfstudio_parses_the_scene_and_cameras_walk_the_streets(tiny_scene: Path) -> None:
     from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 
@@ -318,9 +339,7 @@ def test_nerfstudio_parses_the_scene_and_cameras_walk_the_streets(tiny_scene: Pa
     assert ((written[:, 2] >= low) & (written[:, 2] <= high)).all()
 
     # nerfstudio's own rays for an eval frame, mapped back to the town, see the written depth.
-    rays = val.cameras.generate_rays(camera_indices=1)
-    origins = (rays.origins.reshape(-1, 3).double().numpy() / scale - transform[:, 3]) @ transform[:, :3]
-    directions = rays.directions.reshape(-1, 3).double().numpy() @ transform[:, :3]
+    origins, directions = _rays_in_town_frame(val.cameras.generate_rays(camera_indices=1), train)
     _, depth = render_town_rays(origins, directions, town)
     cos = -(directions / np.linalg.norm(directions, axis=1, keepdims=True)) @ np.array(frames[8]["transform_matrix"])[:3, 2]
     png = read_depth_png(tiny_scene / frames[8]["depth_file_path"]).reshape(-1)
@@ -333,28 +352,20 @@ def test_eval_images_carry_the_true_ray_depth_and_training_images_do_not(tiny_sc
     """The datamanager gives each eval image its true distance along every pixel's ray, in the
     model's units (what evaluation scores the rendered depth against): the generator's exact ray
     depth, within the PNG's millimetre, 0 for the sky. Training batches carry no depth."""
-    from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
-
-    from scalar_nerfstudio.data.datamanager import ScalarDataManagerConfig
-
-    config = ScalarDataManagerConfig(
-        data=tiny_scene, dataparser=NerfstudioDataParserConfig(eval_mode="interval", eval_interval=8), train_num_rays_per_batch=64)
-    datamanager = config.setup(device="cpu", test_mode="test")
+    datamanager = _datamanager(tiny_scene, train_num_rays_per_batch=64)
     assert datamanager.eval_dataset.load_ray_depth and not datamanager.train_dataset.load_ray_depth
     _, train_batch = datamanager.next_train(0)
     assert "ray_depth" not in train_batch
 
     outputs = datamanager.eval_dataset._dataparser_outputs
-    transform = outputs.dataparser_transform.double().numpy()
     scale = float(outputs.dataparser_scale)
     town = load_town(tiny_scene)
+
     def check(camera, ray_depth: torch.Tensor) -> bool:
         """ray_depth [H, W, 1] against the generator's exact depth along nerfstudio's rays of ``camera``;
         whether the image sees the sky."""
         assert ray_depth.shape == (TINY.height, TINY.width, 1) and ray_depth.dtype == torch.float32
-        rays = camera.generate_rays(camera_indices=0, keep_shape=True)
-        origins = (rays.origins.reshape(-1, 3).double().numpy() / scale - transform[:, 3]) @ transform[:, :3]
-        directions = rays.directions.reshape(-1, 3).double().numpy() @ transform[:, :3]
+        origins, directions = _rays_in_town_frame(camera.generate_rays(camera_indices=0, keep_shape=True), outputs)
         _, exact = render_town_rays(origins, directions, town)  # [H * W] metres along the ray, inf: sky
         loaded = ray_depth.reshape(-1).double().numpy() / scale
         known = loaded > 0
@@ -372,17 +383,10 @@ def test_eval_images_carry_the_true_ray_depth_and_training_images_do_not(tiny_sc
 def test_missing_depth_files_skip_the_depth_metrics_with_a_message(tiny_scene: Path, tmp_path: Path, capsys) -> None:
     """A scene whose depth files are not all there (a downscaled load looks for depths_N/) still
     evaluates: without depth, and saying why, instead of failing in the middle of ns-eval."""
-    import shutil
-
-    from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
-
-    from scalar_nerfstudio.data.datamanager import ScalarDataManagerConfig
-
     scene = tmp_path / "scene"
     shutil.copytree(tiny_scene, scene)
     (scene / "depths" / "frame_00008.png").unlink()  # an eval frame's
-    config = ScalarDataManagerConfig(data=scene, dataparser=NerfstudioDataParserConfig(eval_mode="interval", eval_interval=8))
-    datamanager = config.setup(device="cpu", test_mode="test")
+    datamanager = _datamanager(scene)
     assert not datamanager.eval_dataset.load_ray_depth
     assert all("ray_depth" not in batch for _, batch in datamanager.fixed_indices_eval_dataloader)
     log = " ".join(capsys.readouterr().out.split())
@@ -391,18 +395,11 @@ def test_missing_depth_files_skip_the_depth_metrics_with_a_message(tiny_scene: P
 
 def test_an_unreadable_depth_file_is_named(tiny_scene: Path, tmp_path: Path) -> None:
     """An eval image's depth file that exists but cannot be read stops evaluation with its name."""
-    import shutil
-
-    from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
-
-    from scalar_nerfstudio.data.datamanager import ScalarDataManagerConfig
-
     scene = tmp_path / "scene"
     shutil.copytree(tiny_scene, scene)
     (scene / "depths" / "frame_00000.png").write_bytes(b"not a png")
-    config = ScalarDataManagerConfig(data=scene, dataparser=NerfstudioDataParserConfig(eval_mode="interval", eval_interval=8))
     with pytest.raises(ValueError, match=r"frame_00000\.png: cannot read this depth image"):
-        config.setup(device="cpu", test_mode="test")  # nerfstudio reads the eval images while setting up
+        _datamanager(scene)  # nerfstudio reads the eval images while setting up
 
 
 def test_all_cameras_on_streets_for_the_default_town() -> None:
