@@ -165,6 +165,9 @@ def _check_model(model: Any) -> None:
     near, far = getattr(model, "near_plane", 0.0), getattr(model, "far_plane", 1.0)
     if not (isinstance(near, (int, float)) and isinstance(far, (int, float)) and 0 <= near < far):
         raise OptionError(f"--pipeline.model.near-plane {_show(near)} / --pipeline.model.far-plane {_show(far)}: need 0 <= near < far.")
+    radius = getattr(model, "scene_radius", None)
+    if radius is not None and (isinstance(radius, bool) or not isinstance(radius, (int, float)) or not (math.isfinite(radius) and radius > 0)):
+        raise OptionError(f"--pipeline.model.scene-radius {_show(radius)}: must be a finite number > 0 (None: unbounded).")
 
 
 def _check_data(datamanager: Any) -> None:

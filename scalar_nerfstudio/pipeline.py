@@ -25,6 +25,7 @@ from scalar_nerfstudio.blocks.observation import block_observation
 from scalar_nerfstudio.blocks.plan import BlockPlan, PlanSettings, load_plan, plan_blocks
 from scalar_nerfstudio.blocks.split import BlockSplit, BlockSplitError, format_split_table, load_blocks_json
 from scalar_nerfstudio.data.datamanager import ScalarDataManagerConfig, camera_centres, camera_layout
+from scalar_nerfstudio.data.depth import missing_depth_files, scene_radius_from_depth
 from scalar_nerfstudio.engine.device import keep_freed_memory
 from scalar_nerfstudio.runs import block_models_dir
 from scalar_nerfstudio.viewer import BlockOverlay, CoarseFirstRender, fusion_dropdown
@@ -123,6 +124,12 @@ class ScalarPipelineConfig(VanillaPipelineConfig):
     its decoder at --optimizers.block-decoder, its appearance at --optimizers.appearance) and decays
     over the rest. 0: one warm-up and decay over the whole run (the behaviour before 2026-11-25; a
     config.yml from before loads so). docs/town.md, "One model on the blocks' schedule"."""
+    scene_radius_from_depth: bool = True
+    """A new run on a scene with depth images (``depth_file_path``), whose ``--pipeline.model.scene-radius``
+    is not given, is bounded by them: rays end where they leave the sphere around the centre of
+    twice the radius within which 99.9 % of the surface points of up to 64 training images lie
+    (data/depth.py); the radius is recorded in the run's config.yml. False: rays run to the far
+    plane, as before 2026-11-26 (docs/town.md, "The scene bounded by its depth images")."""
     train_blocks: bool = True
     """False: train the global phase only (blocks can then be trained with scalar-nerf-block)."""
     only_block: Optional[int] = None
@@ -209,6 +216,10 @@ class ScalarPipeline(VanillaPipeline):
         self.plan: BlockPlan = self._block_plan(parsed)
         block_ids = self.plan.held_blocks
         self.phases: List[Phase] = config.phases(self.split.num_blocks, train_blocks=False if self.plan.single_model else None)
+        # A new run (one that has started reads its radius, or none, back from its config.yml; a
+        # config.yml from before 2026-11-26 has neither setting and stays unbounded).
+        if config.run_plan is None and getattr(config, "scene_radius_from_depth", False) and getattr(config.model, "scene_radius", None) is None:
+            config.model.scene_radius = _scene_radius_from_depth(parsed)
         self._model = config.model.setup(
             scene_box=self.datamanager.train_dataset.scene_box,
             num_train_data=len(self.datamanager.train_dataset),
@@ -453,6 +464,24 @@ class ScalarPipeline(VanillaPipeline):
     def _blocks_follow_global_model(self) -> bool:
         """Whether blocks train from the global model, in this run or in scalar-nerf-block runs."""
         return not self.plan.single_model and (self.split.num_blocks > 1 or self.config.train_blocks)
+
+
+def _scene_radius_from_depth(parsed) -> Optional[float]:
+    """The scene's radius from its depth images (None: it has none, or they are incomplete), with one
+    line saying which."""
+    missing = missing_depth_files(parsed.metadata)
+    if missing is None:
+        return None
+    if missing:
+        CONSOLE.print(f"[yellow]scene not bounded by depth: {len(missing)} of its depth files are missing (first: {missing[0]})")
+        return None
+    radius = scene_radius_from_depth(parsed)
+    if radius is None:
+        CONSOLE.print("[yellow]scene not bounded by depth: no pixel of its depth images has a known depth")
+    else:
+        CONSOLE.print(f"scene bounded by its depth images: rays end {radius:.3g} units from the centre "
+                      "(--pipeline.model.scene-radius; --pipeline.scene-radius-from-depth False: unbounded)")
+    return radius
 
 
 def parsed_layout_scale(parsed) -> LayoutScale:

@@ -452,6 +452,8 @@ OPTION_CASES = [
     ("pipeline.datamanager.dataparser.downscale_factor", 0, None, "--downscale-factor 0 (nerfstudio-data)"),
     ("pipeline.model.field.log2_hashmap_size", 0, None, "--pipeline.model.field.log2-hashmap-size 0"),
     ("pipeline.model.near_plane", 2000.0, None, "--pipeline.model.near-plane 2000"),
+    ("pipeline.model.scene_radius", 0.0, None, "--pipeline.model.scene-radius 0"),
+    ("pipeline.model.scene_radius", float("inf"), None, "--pipeline.model.scene-radius inf"),
     ("pipeline.model.block_fit_steps", -1, None, "--pipeline.model.block-fit-steps -1: must be a whole number >= 0"),
     ("pipeline.model.block_fit_points", 0, None, "--pipeline.model.block-fit-points 0"),
     ("pipeline.model.warmup_samples_per_ray", -1, None, "--pipeline.model.warmup-samples-per-ray -1: must be a whole number >= 0"),

@@ -112,3 +112,24 @@ def test_a_run_config_from_before_lr_schedule_loads_as_per_phase() -> None:
     assert ScalarPipelineConfig().effective_lr_schedule() == "restart"
     old = yaml.load(yaml.dump(ScalarPipelineConfig()).replace("lr_schedule: restart\n", ""), Loader=yaml.Loader)
     assert "lr_schedule" not in old.__dict__ and old.effective_lr_schedule() == "per-phase"
+
+
+def test_a_run_config_from_before_the_scene_bound_loads_unbounded() -> None:
+    """A config.yml written before the scene radius existed has neither setting: its models render
+    with unbounded rays, as they were trained, and loading it never bounds it by depth."""
+    import re
+
+    import yaml
+
+    from scalar_nerfstudio.models.scalar_model import near_far_collider
+    from scalar_nerfstudio.models.scene_model import ScalarSceneModelConfig
+    from scalar_nerfstudio.pipeline import ScalarPipelineConfig
+
+    text = yaml.dump(ScalarPipelineConfig())
+    old_text = re.sub(r"(?m)^ *scene_radius(_from_depth)?: .*\n", "", text)
+    assert len(old_text.splitlines()) == len(text.splitlines()) - 2
+    old = yaml.load(old_text, Loader=yaml.Loader)
+    assert "scene_radius" not in old.model.__dict__ and "scene_radius_from_depth" not in old.__dict__
+    assert near_far_collider(old.model).scene_radius is None
+    assert near_far_collider(ScalarSceneModelConfig(scene_radius=2.5)).scene_radius == 2.5
+

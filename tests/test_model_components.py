@@ -13,7 +13,7 @@ from conftest import ray_bundle, small_scalar_model
 from scalar_nerfstudio.engine.schedulers import hold_then_restart_factor, warmup_exponential_decay_factor
 from scalar_nerfstudio.fields.scalar_field import contract, contract_to_unit_cube
 from scalar_nerfstudio.model_components.rendering import render_depth, render_weights
-from scalar_nerfstudio.model_components.sampling import OccupancyGrid, lin_disp_spacing, lin_disp_spacing_inverse, sample_intervals
+from scalar_nerfstudio.model_components.sampling import OccupancyGrid, lin_disp_spacing, lin_disp_spacing_inverse, sample_intervals, sphere_interval
 from scalar_nerfstudio.models.scalar_model import ScalarModel
 
 
@@ -378,3 +378,75 @@ def test_rendering_keeps_the_training_near_plane_unless_reset(reset_near_plane: 
     assert (inside > 0.99) if reset_near_plane else (inside < 1e-3)
     # from farther than the near plane the ball is seen either way
     assert _accumulation(model, (-0.5, 0.0, 0.0), (1.0, 0.0, 0.0)) > 0.99
+
+
+def test_sphere_interval_enters_and_leaves_where_the_ray_crosses_the_sphere() -> None:
+    origins = torch.tensor([[0.0, 0, 0], [0.5, 0, 0], [-3.0, 0, 0], [-3.0, 2.5, 0], [-3.0, 0, 0]])
+    directions = torch.tensor([[1.0, 0, 0], [-1.0, 0, 0], [1.0, 0, 0], [1.0, 0, 0], [-1.0, 0, 0]])
+    t_entry, t_exit = sphere_interval(origins, directions, 2.0)
+    assert t_entry.shape == t_exit.shape == (5, 1)
+    assert t_entry[:, 0].tolist() == pytest.approx([-2.0, -1.5, 1.0, 0.0, -5.0])  # a miss: 0, 0
+    assert t_exit[:, 0].tolist() == pytest.approx([2.0, 2.5, 5.0, 0.0, -1.0])  # behind the camera: both < 0
+    # random rays that cross it: both points lie on the sphere
+    generator = torch.Generator().manual_seed(0)
+    origins = torch.randn(200, 3, generator=generator) * 2.0
+    directions = torch.nn.functional.normalize(torch.randn(200, 3, generator=generator), dim=-1)
+    t_entry, t_exit = sphere_interval(origins, directions, 1.5)
+    hit = (t_exit > t_entry)[:, 0]
+    assert 20 < int(hit.sum()) < 200
+    for t in (t_entry, t_exit):
+        radii = (origins + directions * t)[hit].norm(dim=-1)
+        assert torch.allclose(radii, torch.full_like(radii, 1.5), atol=1e-4)
+
+
+def test_sphere_interval_stays_finite_on_extreme_rays() -> None:
+    origins = torch.tensor([[1e30, 0, 0], [1e30, 1e30, 0], [float("nan"), 0, 0], [0.0, 0, 0], [3e38, -3e38, 3e38]])
+    directions = torch.tensor([[-1.0, 0, 0], [0.0, 0, 1], [1.0, 0, 0], [float("inf"), 0, 0], [1.0, 0, 0]])
+    t_entry, t_exit = sphere_interval(origins, directions, 1.0)
+    assert torch.isfinite(t_entry).all() and torch.isfinite(t_exit).all()
+    assert t_exit[0, 0] - t_entry[0, 0] >= 0  # straight at it from 1e30 away: it may round to one point, never NaN
+    assert t_entry[1:, 0].tolist() == t_exit[1:, 0].tolist() == [0.0] * 4  # misses, NaN and inf: empty
+
+
+def _model_with_density(density_of_world, **config) -> ScalarModel:
+    """A fresh model (training image 0) whose density is ``density_of_world([N, 3] world positions)``
+    inside the unit ball of the contraction (radius 1 around the origin) and, beyond it, at the
+    contracted point's direction times 2 (what the contraction maps there, closest to the ball)."""
+    model = small_scalar_model(num_train_data=1, **config)
+    density_at_unit = model.field.density_at_unit
+
+    def density(unit_positions: torch.Tensor, encoding=None):
+        _, geo_features = density_at_unit(unit_positions)
+        contracted = (unit_positions - 0.5) * 4.0  # in the ball of radius 2
+        norm = torch.linalg.vector_norm(contracted, dim=-1, keepdim=True).clamp_min(1e-9)
+        world = torch.where(norm <= 1.0, contracted, contracted / norm / (2.0 - norm).clamp_min(1e-6))
+        return density_of_world(world), geo_features
+
+    model.field.density_at_unit = density
+    return model
+
+
+def test_a_scene_radius_ends_rays_where_they_leave_it() -> None:
+    """With a scene radius, a model renders nothing beyond the sphere (haze behind a wall of the
+    scene cannot be put there), still renders what lies inside it from a camera outside, and a ray
+    that misses the sphere renders the background with no weight."""
+
+    def wall_beyond_3(world: torch.Tensor) -> torch.Tensor:
+        return torch.where(world.norm(dim=-1) > 3.0, 1e3, 0.0) + torch.where(world.norm(dim=-1) < 0.2, 1e3, 0.0)
+
+    unbounded = _model_with_density(wall_beyond_3)
+    bounded = _model_with_density(wall_beyond_3, scene_radius=2.0)
+    assert bounded.collider.scene_radius == 2.0 and unbounded.collider.scene_radius is None
+    for model in (unbounded, bounded):
+        model.eval()
+    outward = ((0.5, 0.0, 0.0), (0.0, 1.0, 0.0))  # from inside, away from the ball: only the far wall
+    assert _accumulation(unbounded, *outward) > 0.99
+    assert _accumulation(bounded, *outward) < 1e-3
+    with torch.no_grad():
+        from_outside = bounded(ray_bundle(torch.tensor([[-10.0, 0.0, 0.0]]), torch.tensor([[1.0, 0.0, 0.0]])))
+        missing = bounded(ray_bundle(torch.tensor([[-10.0, 5.0, 0.0]]), torch.tensor([[1.0, 0.0, 0.0]])))
+    assert float(from_outside["accumulation"]) > 0.99 and float(from_outside["depth"]) == pytest.approx(9.8, abs=0.1)
+    assert float(missing["accumulation"]) == 0.0
+    assert all(torch.isfinite(value).all() for value in missing.values() if isinstance(value, torch.Tensor))
+    with pytest.raises(ValueError, match="scene radius -1.0"):
+        small_scalar_model(scene_radius=-1.0)

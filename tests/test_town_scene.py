@@ -402,6 +402,53 @@ def test_an_unreadable_depth_file_is_named(tiny_scene: Path, tmp_path: Path) -> 
         _datamanager(scene)  # nerfstudio reads the eval images while setting up
 
 
+def _train_outputs(scene: Path):
+    from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
+
+    return NerfstudioDataParserConfig(data=scene, eval_mode="interval", eval_interval=8).setup().get_dataparser_outputs(split="train")
+
+
+def test_the_scene_radius_from_depth_is_that_of_the_farthest_true_surface(tiny_scene: Path) -> None:
+    """With every pixel and no margin, the bound is the distance from the centre of the farthest
+    surface point the generator put in front of a training camera (within the PNG's millimetre);
+    the default (99.9 % of the points, twice that radius) holds every one of them."""
+    from scalar_nerfstudio.data.depth import scene_radius_from_depth
+
+    outputs = _train_outputs(tiny_scene)
+    scale = float(outputs.dataparser_scale)
+    town = load_town(tiny_scene)
+    farthest = 0.0
+    for i in range(len(outputs.image_filenames)):
+        rays = outputs.cameras[i : i + 1].generate_rays(camera_indices=0)
+        origins, directions = _rays_in_town_frame(rays, outputs)
+        _, exact = render_town_rays(origins, directions, town)  # metres along the ray, inf: sky
+        known = np.isfinite(exact) & (exact <= DEPTH_PNG_MAX_M)
+        points = rays.origins.reshape(-1, 3).double().numpy() + rays.directions.reshape(-1, 3).double().numpy() * (exact * scale)[:, None]
+        farthest = max(farthest, float(np.linalg.norm(points[known], axis=1).max()))
+    tight = scene_radius_from_depth(outputs, quantile=1.0, margin=1.0)
+    assert tight == pytest.approx(farthest, abs=2e-3 * scale + 1e-5)
+    assert scene_radius_from_depth(outputs) >= tight
+    half = scene_radius_from_depth(outputs, max_images=2, quantile=1.0, margin=1.0)  # the first and last image only
+    assert half <= tight
+
+
+def test_a_scene_without_all_its_depth_files_is_not_bounded(tiny_scene: Path, tmp_path: Path) -> None:
+    from scalar_nerfstudio.data.depth import scene_radius_from_depth
+
+    scene = tmp_path / "scene"
+    shutil.copytree(tiny_scene, scene)
+    (scene / "depths" / "frame_00001.png").unlink()
+    assert scene_radius_from_depth(_train_outputs(scene)) is None
+    (scene / "depths" / "frame_00001.png").write_bytes(b"not a png")
+    with pytest.raises(ValueError, match=r"frame_00001\.png: cannot read this depth image"):
+        scene_radius_from_depth(_train_outputs(scene))
+    transforms = json.loads((scene / "transforms.json").read_text())
+    for frame in transforms["frames"]:
+        del frame["depth_file_path"]
+    (scene / "transforms.json").write_text(json.dumps(transforms))
+    assert scene_radius_from_depth(_train_outputs(scene)) is None
+
+
 def test_all_cameras_on_streets_for_the_default_town() -> None:
     town = build_town(TownConfig())
     centres = town_camera_poses(town)[:, :3, 3]
@@ -483,3 +530,26 @@ def test_cli_rejects_bad_options_in_one_line(tmp_path: Path, args: List[str], me
     assert len(lines) == 1 and "error" in lines[0] and message in lines[0], result.stderr
     assert (tmp_path / "full" / "keep.txt").read_text() == "user data"
     assert not (tmp_path / "new").exists() or not any((tmp_path / "new").iterdir())
+
+
+@pytest.mark.parametrize("scene_name, from_depth", [("town", True), ("town", False), ("courtyard", True)])
+def test_a_new_run_is_bounded_by_the_scenes_depth_and_records_it(scene_name: str, from_depth: bool, tiny_scene: Path,
+                                                                   scene: Path, tmp_path: Path) -> None:
+    """ns-train on a scene with depth images bounds every model (global and blocks) by them and
+    writes the radius into the run's config.yml, so that every later load renders as trained; a
+    scene without depth, or --pipeline.scene-radius-from-depth False, leaves rays unbounded."""
+    import yaml
+
+    from conftest import tiny_trainer
+    from scalar_nerfstudio.data.depth import scene_radius_from_depth
+
+    data = tiny_scene if scene_name == "town" else scene
+    trainer = tiny_trainer(data, tmp_path, num_blocks=2, scene_radius_from_depth=from_depth)
+    expected = scene_radius_from_depth(trainer.pipeline.datamanager.train_dataparser_outputs) if from_depth else None
+    assert (expected is not None) == (scene_name == "town" and from_depth)
+    model = trainer.pipeline.model
+    assert len(model.blocks) == 2
+    for collider in [model.collider] + [block.collider for block in model.blocks.values()]:
+        assert collider.scene_radius == expected
+    saved = yaml.load((trainer.base_dir / "config.yml").read_text(), Loader=yaml.Loader)
+    assert saved.pipeline.model.scene_radius == expected and saved.pipeline.run_plan is not None

@@ -30,10 +30,10 @@ from PIL import Image
 from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
 from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManager, VanillaDataManagerConfig
 from nerfstudio.data.datasets.base_dataset import InputDataset
-from nerfstudio.data.utils.data_utils import get_depth_image_from_path
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor
 
+from scalar_nerfstudio.data.depth import depth_scale, missing_depth_files, ray_depth_image
 from scalar_nerfstudio.data.validation import to_rgb_array
 
 
@@ -113,26 +113,12 @@ class ScalarInputDataset(InputDataset):
     def ray_depth(self, image_idx: int) -> Tensor:
         """[H, W, 1] float32 distance from the camera centre to the surface along each pixel's ray, in
         the dataparser's units (what the models' ``depth`` output holds); 0 where the depth image
-        says unknown (0: sky, or farther than its format holds).
-
-        The depth images hold z-depth (along the optical axis, nerfstudio's convention) in units of
-        the dataparser's ``depth_unit_scale_factor`` metres; each pixel's ray length per unit of
-        z-depth (``directions_norm``) comes from the camera, so distortion is accounted for.
-        """
+        says unknown (0: sky, or farther than its format holds). See :func:`ray_depth_image`."""
         filenames = self._dataparser_outputs.metadata.get("depth_filenames")
         if filenames is None:
             raise ValueError("this scene has no depth images (no depth_file_path in transforms.json)")
-        path = Path(filenames[image_idx])
-        camera = self.cameras[image_idx]
-        height, width = int(camera.height), int(camera.width)
-        scale = float(self._dataparser_outputs.metadata.get("depth_unit_scale_factor", 1e-3)) * float(self._dataparser_outputs.dataparser_scale)
-        try:  # nerfstudio's reader (16/32-bit images, .npy); resized by nearest, so unknown pixels stay unknown
-            z_depth = get_depth_image_from_path(path, height, width, scale)[..., 0].float()  # [H, W]
-        except Exception as error:  # cv2 gives None for a file it cannot read, and fails on that
-            raise ValueError(f"{path}: cannot read this depth image ({type(error).__name__}: {error})") from error
-        rays = self.cameras[image_idx : image_idx + 1].generate_rays(camera_indices=0, keep_shape=True)
-        norms = rays.metadata["directions_norm"].reshape(z_depth.shape).float()  # [H, W]
-        return torch.where(z_depth > 0, z_depth * norms, torch.zeros_like(z_depth))[..., None]
+        image = ray_depth_image(self.cameras, image_idx, Path(filenames[image_idx]), depth_scale(self._dataparser_outputs))
+        return image.ray_depth[..., None]
 
     def get_numpy_image(self, image_idx: int) -> npt.NDArray[np.uint8]:
         with Image.open(self._dataparser_outputs.image_filenames[image_idx]) as pil_image:
@@ -198,12 +184,11 @@ class ScalarDataManager(VanillaDataManager[ScalarInputDataset]):
 
     def create_eval_dataset(self) -> ScalarInputDataset:
         dataset = self._with_background(super().create_eval_dataset())
-        depth_files = dataset.metadata.get("depth_filenames")
-        missing = [path for path in depth_files or () if not Path(path).is_file()]
+        missing = missing_depth_files(dataset.metadata)
         if missing:  # e.g. images_N/ for a downscaled load without depths_N/ beside it
             CONSOLE.print(f"[yellow]depth metrics skipped: {len(missing)} of the eval images' depth files are missing "
                           f"(first: {missing[0]})")
-        dataset.load_ray_depth = depth_files is not None and not missing
+        dataset.load_ray_depth = missing is not None and not missing
         return dataset
 
     def image_cache_budget_bytes(self) -> float:

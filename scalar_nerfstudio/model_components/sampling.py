@@ -33,6 +33,32 @@ def lin_disp_spacing_inverse(s: Tensor) -> Tensor:
     return torch.where(s < 0.5, 2.0 * s, 1.0 / (2.0 * (1.0 - s).clamp_min(1e-6)))
 
 
+def sphere_interval(origins: Tensor, directions: Tensor, radius: float) -> tuple[Tensor, Tensor]:
+    """Where rays are inside the sphere of ``radius`` around the origin.
+
+    Args:
+        origins: [R, 3] ray origins.
+        directions: [R, 3] unit ray directions.
+        radius: the sphere's radius (> 0).
+
+    Returns:
+        t_entry, t_exit: [R, 1] distances along each ray at which it enters and leaves the sphere
+        (t_entry < 0 for an origin inside it). A ray that misses the sphere, or whose origin or
+        direction is not finite, gets t_entry = t_exit = 0, so that a caller clamping it to its
+        near plane leaves it empty. Stays finite for origins at any distance (the squared distance
+        of the ray to the centre is taken from the point of closest approach, not from |o|^2).
+    """
+    along = (origins * directions).sum(dim=-1, keepdim=True)  # [R, 1] o . d
+    closest = origins - along * directions  # [R, 3] the ray's (line's) point nearest the centre
+    half_chord_sq = radius * radius - (closest * closest).sum(dim=-1, keepdim=True)
+    hit = (half_chord_sq > 0) & torch.isfinite(half_chord_sq) & torch.isfinite(along)
+    half_chord = torch.sqrt(torch.where(hit, half_chord_sq, torch.zeros_like(half_chord_sq)))
+    zeros = torch.zeros_like(along)
+    t_entry = torch.where(hit, -along - half_chord, zeros)
+    t_exit = torch.where(hit, -along + half_chord, zeros)
+    return t_entry, t_exit
+
+
 def sample_intervals(nears: Tensor, fars: Tensor, num_samples: int, jitter: bool) -> tuple[Tensor, Tensor]:
     """Intervals along each ray, evenly spaced in :func:`lin_disp_spacing` space.
 

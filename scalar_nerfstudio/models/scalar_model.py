@@ -46,7 +46,7 @@ from scalar_nerfstudio.model_components.rendering import (
     safe_normalise,
     weights_from_alphas,
 )
-from scalar_nerfstudio.model_components.sampling import OccupancyGrid, lin_disp_spacing, sample_intervals
+from scalar_nerfstudio.model_components.sampling import OccupancyGrid, lin_disp_spacing, sample_intervals, sphere_interval
 
 _CHUNK = 1 << 16
 #: Front-to-back segments of the samples at render time (rays that turned opaque stop being evaluated).
@@ -79,10 +79,40 @@ def _neutralise_bad_rays(origins: Tensor, directions: Tensor, nears: Tensor, far
     return origins, directions, nears, fars
 
 
-def near_far_collider(config: "ScalarModelConfig") -> NearFarCollider:
-    """Rays from ``config.near_plane`` to ``config.far_plane``; outside training the near plane is
-    kept, unless ``config.reset_near_plane`` (nerfstudio's default) starts rays at the camera."""
-    return NearFarCollider(near_plane=config.near_plane, far_plane=config.far_plane, reset_near_plane=config.reset_near_plane)
+class BoundedNearFarCollider(NearFarCollider):
+    """nerfstudio's NearFarCollider, and, with a ``scene_radius``, rays kept inside the sphere of that
+    radius around the origin: a ray starts no earlier than where it enters the sphere and ends
+    where it leaves it (or at the far plane, if that comes first); a ray that misses it is empty
+    (near = far) and renders as the background."""
+
+    def __init__(self, near_plane: float, far_plane: float, reset_near_plane: bool, scene_radius: Optional[float] = None) -> None:
+        super().__init__(near_plane=near_plane, far_plane=far_plane, reset_near_plane=reset_near_plane)
+        if scene_radius is not None and not (math.isfinite(scene_radius) and scene_radius > 0):
+            raise ValueError(f"scene radius {scene_radius}: must be a finite number > 0 (None: unbounded)")
+        self.scene_radius = scene_radius
+
+    def set_nears_and_fars(self, ray_bundle: RayBundle) -> RayBundle:
+        ray_bundle = super().set_nears_and_fars(ray_bundle)
+        if self.scene_radius is None or ray_bundle.nears is None or ray_bundle.fars is None:
+            return ray_bundle
+        shape = ray_bundle.nears.shape
+        t_entry, t_exit = sphere_interval(ray_bundle.origins.reshape(-1, 3), ray_bundle.directions.reshape(-1, 3), self.scene_radius)
+        nears = torch.maximum(ray_bundle.nears.reshape(-1, 1), t_entry.to(ray_bundle.nears.dtype))
+        fars = torch.maximum(torch.minimum(ray_bundle.fars.reshape(-1, 1), t_exit.to(ray_bundle.fars.dtype)), nears)
+        ray_bundle.nears = nears.reshape(shape)
+        ray_bundle.fars = fars.reshape(shape)
+        return ray_bundle
+
+
+def near_far_collider(config: "ScalarModelConfig") -> BoundedNearFarCollider:
+    """Rays from ``config.near_plane`` to ``config.far_plane``, inside the sphere of
+    ``config.scene_radius`` when there is one; outside training the near plane is kept, unless
+    ``config.reset_near_plane`` (nerfstudio's default) starts rays at the camera. A config.yml from
+    before 2026-11-26 has no ``scene_radius``: unbounded, as it was trained."""
+    return BoundedNearFarCollider(
+        near_plane=config.near_plane, far_plane=config.far_plane, reset_near_plane=config.reset_near_plane,
+        scene_radius=getattr(config, "scene_radius", None),
+    )
 
 
 @dataclass
@@ -102,6 +132,12 @@ class ScalarModelConfig(ModelConfig):
     right in front of it as a veil (castle-P30's eval image 8, see docs/benchmarks.md)."""
     far_plane: float = 1000.0
     """Ray end; far points contract to the boundary of the unit cube."""
+    scene_radius: Optional[float] = None
+    """Rays end where they leave the sphere of this radius around the origin (world units of the
+    normalised scene), if that comes before ``far_plane``; a ray from outside starts where it
+    enters it. None: unbounded. Set by the pipeline from the scene's depth images when it has them
+    (``--pipeline.scene-radius-from-depth``): a small table otherwise puts coloured haze far behind
+    the surfaces, in the deep shell the far plane leaves it (docs/town.md)."""
     num_samples_per_ray: int = 64
     """Intervals per ray before empty-space and occlusion skipping."""
     warmup_samples_per_ray: int = 16
