@@ -1,12 +1,14 @@
-"""Benchmark: hash-grid encoding forward+backward throughput on CPU.
+"""Benchmark: hash-grid encoding forward+backward throughput on CPU or CUDA.
 
 Compares, on the same random inputs in the same process, ``HashGridEncoding`` (C++ and torch
-paths) with nerfstudio's ``HashEncoding(implementation="torch")``, for several feature counts and
-thread counts, and prints a table of million points per second (fwd + bwd) and speed-ups.
+paths; with ``--device cuda`` the CUDA kernel and torch) with nerfstudio's
+``HashEncoding(implementation="torch")``, for several feature counts and thread counts, and prints a
+table of million points per second (fwd + bwd) and speed-ups.
 
 Example::
 
     python benchmarks/bench_encoding.py --features 2 4 --threads 1 2 --num-points 262144
+    python benchmarks/bench_encoding.py --device cuda --features 2 4 --threads 16 --num-points 1048576
 """
 
 from __future__ import annotations
@@ -22,11 +24,12 @@ from scalar_nerfstudio.benchmarking.machine import fwd_bwd_seconds
 from scalar_nerfstudio.encodings import HashGridEncoding
 
 
-def build_modules(features: int, log2_hashmap_size: int, max_resolution: int) -> dict[str, nn.Module]:
+def build_modules(features: int, log2_hashmap_size: int, max_resolution: int, kernel: str = "cpp") -> dict[str, nn.Module]:
     """The encoders under test, all with 16 levels from resolution 16 to ``max_resolution`` and hashed
-    levels of ``2**log2_hashmap_size`` rows (ours stores the coarse levels densely, hence fewer rows)."""
+    levels of ``2**log2_hashmap_size`` rows (ours stores the coarse levels densely, hence fewer rows).
+    ``kernel``: ``cpp`` or ``cuda``, the implementation of the first entry, ``ours-<kernel>``."""
     return {
-        "ours-cpp": HashGridEncoding(16, features, log2_hashmap_size, 16, max_resolution, implementation="cpp"),
+        f"ours-{kernel}": HashGridEncoding(16, features, log2_hashmap_size, 16, max_resolution, implementation=kernel),
         "ours-torch": HashGridEncoding(16, features, log2_hashmap_size, 16, max_resolution, implementation="torch"),
         "ns-torch": HashEncoding(
             num_levels=16,
@@ -59,16 +62,21 @@ def main() -> None:
     parser.add_argument("--ns-repeats", type=int, default=3, help="timed iterations for the slow nerfstudio baseline")
     parser.add_argument("--skip-ns", action="store_true", help="do not run the nerfstudio baseline")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--device", choices=["cpu", "cuda"], default="cpu", help="cuda: the CUDA kernel against torch on the GPU")
     args = parser.parse_args()
+    device = torch.device(args.device)
+    kernel = "cuda" if device.type == "cuda" else "cpp"
+    gpu = f", {torch.cuda.get_device_name(device)}" if device.type == "cuda" else ""
 
-    print(f"torch {torch.__version__}, {os.cpu_count()} CPUs, load average before: {os.getloadavg()[0]:.2f}")
+    print(f"torch {torch.__version__}, {os.cpu_count()} CPUs{gpu}, load average before: {os.getloadavg()[0]:.2f}")
     generator = torch.Generator().manual_seed(args.seed)
-    positions = torch.rand(args.num_points, 3, generator=generator)
-    names = ["ours-cpp", "ours-torch"] + ([] if args.skip_ns else ["ns-torch"])
+    positions = torch.rand(args.num_points, 3, generator=generator).to(device)
+    names = [f"ours-{kernel}", "ours-torch"] + ([] if args.skip_ns else ["ns-torch"])
     rows: list[list[str]] = []
     for features in args.features:
-        modules = build_modules(features, args.log2_hashmap_size, args.max_resolution)
-        upstream = torch.randn(args.num_points, 16 * features, generator=generator)
+        built = build_modules(features, args.log2_hashmap_size, args.max_resolution, kernel)
+        modules = {name: module.to(device) for name, module in built.items()}
+        upstream = torch.randn(args.num_points, 16 * features, generator=generator).to(device)
         for threads in args.threads:
             torch.set_num_threads(threads)
             rates: dict[str, float] = {}
@@ -83,12 +91,12 @@ def main() -> None:
                 )
                 rates[name] = args.num_points / seconds / 1e6
             row = [str(features), str(threads)] + [f"{rates[name]:.3f}" for name in names]
-            row += [ratio(rates, "ours-cpp", "ns-torch"), ratio(rates, "ours-torch", "ns-torch")]
-            row.append(ratio(rates, "ours-cpp", "ours-torch"))
+            row += [ratio(rates, f"ours-{kernel}", "ns-torch"), ratio(rates, "ours-torch", "ns-torch")]
+            row.append(ratio(rates, f"ours-{kernel}", "ours-torch"))
             rows.append(row)
             print("  ".join(row), flush=True)
 
-    header = ["F", "threads"] + [f"{name} Mpts/s" for name in names] + ["cpp/ns", "torch/ns", "cpp/torch"]
+    header = ["F", "threads"] + [f"{name} Mpts/s" for name in names] + [f"{kernel}/ns", "torch/ns", f"{kernel}/torch"]
     widths = [max(len(h), *(len(r[i]) for r in rows)) for i, h in enumerate(header)]
     print(
         f"\nfwd+bwd throughput (M points/s), N={args.num_points}, 16 levels, T=2^{args.log2_hashmap_size}, "

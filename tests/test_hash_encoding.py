@@ -1,4 +1,4 @@
-"""Tests of the multi-resolution hash-grid encoding (torch and C++ paths vs the reference)."""
+"""Tests of the multi-resolution hash-grid encoding (torch, C++ and, on a CUDA machine, CUDA paths vs the reference)."""
 
 from __future__ import annotations
 
@@ -19,6 +19,7 @@ from scalar_nerfstudio.encodings import (
     cpp_extension_error,
     grid_resolutions,
     hash_encoding_cpp,
+    hash_encoding_cuda,
     hash_encoding_torch,
     level_corners,
     level_row_counts,
@@ -41,12 +42,24 @@ def skip_without_cpp() -> None:
         pytest.skip(f"C++ hash-grid extension unavailable: {cpp_extension_error()}")
 
 
-@pytest.fixture(params=["torch", "cpp"])
+needs_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+
+
+def encode_on_cuda(positions: Tensor, table: Tensor, layout: GridLayout) -> Tensor:
+    """The CUDA kernel's encoding of CPU tensors, returned on the CPU (the table's gradient flows back
+    through the copies). On a CUDA machine the kernel must build: a failed build fails the test."""
+    return hash_encoding_cuda(positions.cuda(), table.cuda(), layout).cpu()
+
+
+@pytest.fixture(params=["torch", "cpp", pytest.param("cuda", marks=needs_cuda)])
 def encode(request: pytest.FixtureRequest) -> Encode:
-    """The encoding function of one implementation; the C++ one is skipped if it cannot be built."""
+    """The encoding function of one implementation; the C++ one is skipped if it cannot be built,
+    the CUDA one without a GPU."""
     if request.param == "cpp":
         skip_without_cpp()
         return hash_encoding_cpp
+    if request.param == "cuda":
+        return encode_on_cuda
     return hash_encoding_torch
 
 
@@ -108,16 +121,19 @@ def test_backward_matches_reference(encode: Encode, features: int) -> None:
 
 
 
-@pytest.mark.parametrize("implementation", ["torch", "cpp"])
+@pytest.mark.parametrize("implementation", ["torch", "cpp", pytest.param("cuda", marks=needs_cuda)])
 def test_an_encoding_computed_without_autograd_gets_the_tables_gradient(implementation: str) -> None:
     """A training step encodes its samples once, in the no-grad pass; joined to the table's graph
-    later, that encoding gives the table exactly the gradient of encoding them again."""
+    later, that encoding gives the table exactly the gradient of encoding them again (on CUDA, up to
+    the order of the kernel's atomic sums)."""
     if implementation == "cpp":
         skip_without_cpp()
+    device = torch.device("cuda" if implementation == "cuda" else "cpu")
     torch.manual_seed(0)
-    enc = HashGridEncoding(8, 4, 12, 4, 256, implementation=implementation, init_scale=1.0)
-    positions = sample_points(enc.resolutions)  # NaN, infinities and points outside [0, 1] included
-    upstream = torch.randn(positions.shape[0], enc.get_out_dim(), generator=torch.Generator().manual_seed(3))
+    enc = HashGridEncoding(8, 4, 12, 4, 256, implementation=implementation, init_scale=1.0).to(device)
+    assert enc.active_implementation == implementation
+    positions = sample_points(enc.resolutions).to(device)  # NaN, infinities and points outside [0, 1] included
+    upstream = torch.randn(positions.shape[0], enc.get_out_dim(), generator=torch.Generator().manual_seed(3)).to(device)
     (expected,) = torch.autograd.grad(enc(positions), enc.table, upstream)
     with torch.no_grad():
         encoding = enc(positions)
@@ -125,7 +141,10 @@ def test_an_encoding_computed_without_autograd_gets_the_tables_gradient(implemen
     assert joined.requires_grad and torch.equal(joined, encoding)
     (actual,) = torch.autograd.grad(joined, enc.table, upstream)
     assert torch.isfinite(actual).all()
-    torch.testing.assert_close(actual, expected, atol=1e-6, rtol=0)
+    if implementation == "cuda":  # two backward passes, each summing with atomics in its own order
+        assert_grad_close(actual, expected)
+    else:
+        torch.testing.assert_close(actual, expected, atol=1e-6, rtol=0)
     with pytest.raises(ValueError, match=r"encoding \[N, 32\]"):
         enc.with_table_gradient(positions, encoding[:, :16])
 
@@ -260,9 +279,9 @@ def test_build_failure_falls_back_to_torch(monkeypatch: pytest.MonkeyPatch, capl
         raise OSError("no C++ compiler")
 
     # A fresh loader state (restored by monkeypatch) with a build that fails.
-    monkeypatch.setattr(_cpp, "_attempted", False)
-    monkeypatch.setattr(_cpp, "_ops", None)
-    monkeypatch.setattr(_cpp, "_error", None)
+    monkeypatch.setattr(_cpp.CPU_KERNELS, "_attempted", False)
+    monkeypatch.setattr(_cpp.CPU_KERNELS, "_ops", None)
+    monkeypatch.setattr(_cpp.CPU_KERNELS, "_error", None)
     monkeypatch.setattr(torch.utils.cpp_extension, "load", failing_load)
     with caplog.at_level(logging.WARNING, logger=_cpp.__name__):
         enc = HashGridEncoding(num_levels=4, features_per_level=2, log2_hashmap_size=12, max_resolution=64)
@@ -275,15 +294,39 @@ def test_build_failure_falls_back_to_torch(monkeypatch: pytest.MonkeyPatch, capl
         HashGridEncoding(num_levels=4, log2_hashmap_size=12, implementation="cpp")(torch.rand(10, 3))
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
-def test_cuda_matches_cpu_reference() -> None:
+@needs_cuda
+@pytest.mark.parametrize("implementation", ["auto", "torch"])
+def test_cuda_matches_cpu_reference(implementation: str) -> None:
+    """On a CUDA table, "auto" runs the CUDA kernel (it must build where there is a GPU) and "torch"
+    the torch code; both give the reference's features and table gradient."""
     enc = make_encoding(2)
+    enc.implementation = implementation  # type: ignore[assignment]
     positions = sample_points(enc.resolutions)
-    expected = reference(enc, positions).detach()
+    upstream = torch.randn(positions.shape[0], enc.get_out_dim(), generator=torch.Generator().manual_seed(3))
+    expected = reference(enc, positions)
+    (grad_expected,) = torch.autograd.grad(expected, enc.table, upstream)
     enc_cuda = enc.cuda()
-    assert enc_cuda.active_implementation == "torch"
-    actual = enc_cuda(positions.cuda()).cpu().detach()
-    torch.testing.assert_close(actual, expected, atol=FORWARD_ATOL, rtol=0)
+    assert enc_cuda.active_implementation == ("cuda" if implementation == "auto" else "torch")
+    actual = enc_cuda(positions.cuda())
+    (grad_actual,) = torch.autograd.grad(actual, enc_cuda.table, upstream.cuda())
+    torch.testing.assert_close(actual.cpu().detach(), expected.detach(), atol=FORWARD_ATOL, rtol=0)
+    assert_grad_close(grad_actual.cpu(), grad_expected)
+
+
+@needs_cuda
+def test_cuda_kernel_rejects_bad_inputs() -> None:
+    enc = make_encoding(2).cuda()
+    positions = torch.rand(10, 3, device="cuda")
+    with pytest.raises(RuntimeError, match="contiguous"):
+        hash_encoding_cuda(torch.rand(3, 10, device="cuda").t(), enc.table, enc.layout)
+    with pytest.raises(RuntimeError, match="float32"):
+        hash_encoding_cuda(positions.double(), enc.table, enc.layout)
+    with pytest.raises(RuntimeError, match=r"\[N, 3\], got \[10, 4\]"):
+        hash_encoding_cuda(torch.rand(10, 4, device="cuda"), enc.table, enc.layout)
+    with pytest.raises(RuntimeError, match="row count"):
+        hash_encoding_cuda(positions, enc.table[:-1], enc.layout)
+    with pytest.raises(RuntimeError, match="must be a CUDA tensor"):
+        hash_encoding_cuda(positions.cpu(), enc.table, enc.layout)
 
 
 @pytest.mark.parametrize("implementation", ["torch", "auto"])

@@ -21,7 +21,7 @@ from scalar_nerfstudio.engine.timing import median_seconds
 
 def fwd_bwd_seconds(module: nn.Module, positions: Tensor, upstream: Tensor, warmup: int, repeats: int) -> float:
     """Median seconds of one ``module(positions)`` forward + backward of ``upstream`` (its parameters'
-    gradients are reset before each call).
+    gradients are reset before each call; on CUDA each call waits for its kernels to finish).
 
     Args:
         module: an encoder whose output is [N, D].
@@ -31,11 +31,14 @@ def fwd_bwd_seconds(module: nn.Module, positions: Tensor, upstream: Tensor, warm
         repeats: timed calls (the median is returned).
     """
     params = [p for p in module.parameters() if p.requires_grad]
+    on_cuda = positions.device.type == "cuda"
 
     def step() -> None:
         for p in params:
             p.grad = None
         module(positions).backward(upstream)
+        if on_cuda:
+            torch.cuda.synchronize(positions.device)
 
     return median_seconds(step, repeats, warmup)
 

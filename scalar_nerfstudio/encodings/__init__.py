@@ -1,4 +1,4 @@
-"""Encodings: the multi-resolution hash grid (C++/OpenMP on CPU, vectorised torch elsewhere)."""
+"""Encodings: the multi-resolution hash grid (C++/OpenMP on CPU, a CUDA kernel on CUDA, vectorised torch elsewhere)."""
 
 from scalar_nerfstudio.encodings._cpp import extension_available as cpp_extension_available
 from scalar_nerfstudio.encodings._cpp import extension_error as cpp_extension_error
@@ -7,6 +7,7 @@ from scalar_nerfstudio.encodings.hash_grid import (
     HashGridEncoding,
     grid_resolutions,
     hash_encoding_cpp,
+    hash_encoding_cuda,
     hash_encoding_torch,
     level_corners,
     level_row_counts,
@@ -19,6 +20,7 @@ __all__ = [
     "cpp_extension_error",
     "grid_resolutions",
     "hash_encoding_cpp",
+    "hash_encoding_cuda",
     "hash_encoding_torch",
     "level_corners",
     "level_row_counts",

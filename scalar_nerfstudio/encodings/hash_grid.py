@@ -23,10 +23,12 @@ Semantics (shared by every implementation in this module and by the C++ kernel):
   d(features)/d(positions)).
 
 Implementations: ``"cpp"`` (C++/OpenMP kernel JIT-built on first use, CPU tensors only; uses
-``torch.get_num_threads()`` threads and gives bitwise the same results for any thread count) and
-``"torch"`` (vectorised pure torch, any device). ``"auto"`` uses ``"cpp"`` for CPU tensors when the
-kernel builds and ``"torch"`` otherwise (always on CUDA). Both agree with the tests' oracle,
-``reference_hash_encoding`` in ``encodings/_reference.py``, up to float32 summation order.
+``torch.get_num_threads()`` threads and gives bitwise the same results for any thread count),
+``"cuda"`` (CUDA kernel JIT-built with nvcc on first use, CUDA tensors only; one launch per pass,
+its backward adds with atomics) and ``"torch"`` (vectorised pure torch, any device). ``"auto"``
+uses the kernel of the tensors' device when it builds and ``"torch"`` otherwise. All agree with
+the tests' oracle, ``reference_hash_encoding`` in ``encodings/_reference.py``, up to float32
+summation order.
 """
 
 from __future__ import annotations
@@ -34,18 +36,21 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import torch
 from torch import Tensor, nn
 
 from scalar_nerfstudio.encodings import _cpp
 
-Implementation = Literal["auto", "cpp", "torch"]
+if TYPE_CHECKING:
+    from torch._ops import _OpNamespace
+
+Implementation = Literal["auto", "cpp", "cuda", "torch"]
 
 PRIME_Y = 2654435761
 PRIME_Z = 805459861
-CPP_FEATURES_PER_LEVEL = (1, 2, 4, 8)  # F values the C++ kernel is specialised for
+CPP_FEATURES_PER_LEVEL = (1, 2, 4, 8)  # F values the C++ and CUDA kernels are specialised for
 
 
 def grid_resolutions(num_levels: int, base_resolution: int, max_resolution: int) -> list[int]:
@@ -148,9 +153,11 @@ def _torch_table_gradient(coords: Tensor, grad_out: Tensor, layout: GridLayout, 
     return grad_table
 
 
-def _cpp_table_gradient(positions: Tensor, grad_out: Tensor, layout: GridLayout, num_features: int) -> Tensor:
-    """Table gradient ``[rows, F]`` of the C++ encoding at ``positions`` ``[N, 3]`` for ``grad_out`` ``[N, L * F]``."""
-    return _cpp.require_extension().backward(
+def _kernel_table_gradient(
+    kernel: _OpNamespace, positions: Tensor, grad_out: Tensor, layout: GridLayout, num_features: int
+) -> Tensor:
+    """Table gradient ``[rows, F]`` of a kernel's encoding (C++ or CUDA ops) at ``positions`` ``[N, 3]`` for ``grad_out`` ``[N, L * F]``."""
+    return kernel.backward(
         grad_out.contiguous(), positions, list(layout.level_offsets), list(layout.resolutions), layout.hashmap_size, num_features
     )
 
@@ -186,28 +193,26 @@ class _TorchHashGrid(torch.autograd.Function):
         return None, _torch_table_gradient(coords, grad_out, ctx.layout, ctx.table_shape), None
 
 
-class _CppHashGrid(torch.autograd.Function):
-    """C++/OpenMP hash-grid encoding (CPU, float32, contiguous inputs)."""
+class _KernelHashGrid(torch.autograd.Function):
+    """Hash-grid encoding by a kernel: the C++/OpenMP ops (CPU) or the CUDA ops (float32, contiguous inputs)."""
 
     @staticmethod
-    def forward(ctx: Any, positions: Tensor, table: Tensor, layout: GridLayout) -> Tensor:
+    def forward(ctx: Any, positions: Tensor, table: Tensor, layout: GridLayout, kernel: _OpNamespace) -> Tensor:
         """``positions`` ``[N, 3]``, ``table`` ``[rows, F]`` -> ``[N, L * F]``; sanitises internally."""
-        out = _cpp.require_extension().forward(
-            positions, table, list(layout.level_offsets), list(layout.resolutions), layout.hashmap_size
-        )
+        out = kernel.forward(positions, table, list(layout.level_offsets), list(layout.resolutions), layout.hashmap_size)
         ctx.save_for_backward(positions)
-        ctx.layout = layout
+        ctx.layout, ctx.kernel = layout, kernel
         ctx.num_features = table.shape[1]
         return out
 
     @staticmethod
     @torch.autograd.function.once_differentiable
-    def backward(ctx: Any, grad_out: Tensor) -> tuple[None, Tensor | None, None]:
+    def backward(ctx: Any, grad_out: Tensor) -> tuple[None, Tensor | None, None, None]:
         """``grad_out`` ``[N, L * F]`` -> gradient of the table ``[rows, F]`` (none for positions)."""
         if not ctx.needs_input_grad[1]:
-            return None, None, None
+            return None, None, None, None
         (positions,) = ctx.saved_tensors
-        return None, _cpp_table_gradient(positions, grad_out, ctx.layout, ctx.num_features), None
+        return None, _kernel_table_gradient(ctx.kernel, positions, grad_out, ctx.layout, ctx.num_features), None, None
 
 
 class _PrecomputedEncoding(torch.autograd.Function):
@@ -218,10 +223,13 @@ class _PrecomputedEncoding(torch.autograd.Function):
     step that has already encoded its samples in a no-grad pass does not encode them again."""
 
     @staticmethod
-    def forward(ctx: Any, positions: Tensor, table: Tensor, layout: GridLayout, encoding: Tensor, use_cpp: bool) -> Tensor:
-        """``positions`` ``[N, 3]`` float32, ``encoding`` ``[N, L * F]`` (their encoding by ``table``) -> ``encoding``."""
-        ctx.save_for_backward(positions if use_cpp else sanitise_positions(positions).t().contiguous())
-        ctx.layout, ctx.use_cpp, ctx.table_shape = layout, use_cpp, table.shape
+    def forward(
+        ctx: Any, positions: Tensor, table: Tensor, layout: GridLayout, encoding: Tensor, kernel: _OpNamespace | None
+    ) -> Tensor:
+        """``positions`` ``[N, 3]`` float32, ``encoding`` ``[N, L * F]`` (their encoding by ``table``) -> ``encoding``.
+        ``kernel``: the C++ or CUDA ops whose backward gives the table gradient, ``None`` for torch's."""
+        ctx.save_for_backward(positions if kernel is not None else sanitise_positions(positions).t().contiguous())
+        ctx.layout, ctx.kernel, ctx.table_shape = layout, kernel, table.shape
         return encoding.view_as(encoding)
 
     @staticmethod
@@ -231,8 +239,8 @@ class _PrecomputedEncoding(torch.autograd.Function):
         if not ctx.needs_input_grad[1]:
             return None, None, None, None, None
         (saved,) = ctx.saved_tensors
-        if ctx.use_cpp:
-            grad_table = _cpp_table_gradient(saved, grad_out, ctx.layout, ctx.table_shape[1])
+        if ctx.kernel is not None:
+            grad_table = _kernel_table_gradient(ctx.kernel, saved, grad_out, ctx.layout, ctx.table_shape[1])
         else:
             grad_table = _torch_table_gradient(saved, grad_out, ctx.layout, ctx.table_shape)
         return None, grad_table, None, None, None
@@ -250,7 +258,17 @@ def hash_encoding_cpp(positions: Tensor, table: Tensor, layout: GridLayout) -> T
         RuntimeError: if the kernel cannot be built, or ``positions`` / ``table`` are not
             contiguous float32 CPU tensors of shapes ``[N, 3]`` / ``[rows, F]`` (F in 1, 2, 4, 8).
     """
-    return _CppHashGrid.apply(positions, table, layout)
+    return _KernelHashGrid.apply(positions, table, layout, _cpp.require_extension())
+
+
+def hash_encoding_cuda(positions: Tensor, table: Tensor, layout: GridLayout) -> Tensor:
+    """CUDA encoding: ``[N, 3]`` -> ``[N, L * F]`` (built with nvcc on first call).
+
+    Raises:
+        RuntimeError: if the kernel cannot be built, or ``positions`` / ``table`` are not
+            contiguous float32 CUDA tensors of shapes ``[N, 3]`` / ``[rows, F]`` (F in 1, 2, 4, 8).
+    """
+    return _KernelHashGrid.apply(positions, table, layout, _cpp.CUDA_HASH_GRID.require())
 
 
 class HashGridEncoding(nn.Module):
@@ -263,8 +281,10 @@ class HashGridEncoding(nn.Module):
         log2_hashmap_size: ``log2 T``; hashed levels have ``T`` rows.
         base_resolution: resolution (cells per axis) of the coarsest level.
         max_resolution: resolution of the finest level.
-        implementation: ``"auto"`` (C++ on CPU when it builds, torch otherwise), ``"cpp"`` (C++ on
-            CPU, error if it cannot be built; CUDA tensors still use torch) or ``"torch"``.
+        implementation: ``"auto"`` (the C++ kernel on CPU and the CUDA kernel on CUDA, each when it
+            builds, torch otherwise), ``"cpp"`` (C++ on CPU, error if it cannot be built; CUDA tensors
+            use torch), ``"cuda"`` (the CUDA kernel on CUDA, error if it cannot be built; CPU tensors as
+            ``"auto"``) or ``"torch"``.
         init_scale: table entries are initialised uniformly in ``[-init_scale, init_scale]``.
 
     Attributes:
@@ -294,10 +314,10 @@ class HashGridEncoding(nn.Module):
             raise ValueError(
                 f"need 1 <= base_resolution <= max_resolution < 2**24, got {base_resolution}, {max_resolution}"
             )
-        if implementation not in ("auto", "cpp", "torch"):
-            raise ValueError(f"implementation must be 'auto', 'cpp' or 'torch', got {implementation!r}")
-        if implementation == "cpp" and features_per_level not in CPP_FEATURES_PER_LEVEL:
-            raise ValueError(f"the C++ kernel supports features_per_level in {CPP_FEATURES_PER_LEVEL}")
+        if implementation not in ("auto", "cpp", "cuda", "torch"):
+            raise ValueError(f"implementation must be 'auto', 'cpp', 'cuda' or 'torch', got {implementation!r}")
+        if implementation in ("cpp", "cuda") and features_per_level not in CPP_FEATURES_PER_LEVEL:
+            raise ValueError(f"the {implementation} kernel supports features_per_level in {CPP_FEATURES_PER_LEVEL}")
         self.num_levels = num_levels
         self.features_per_level = features_per_level
         self.log2_hashmap_size = log2_hashmap_size
@@ -316,18 +336,30 @@ class HashGridEncoding(nn.Module):
         return self.num_levels * self.features_per_level
 
     @property
-    def active_implementation(self) -> Literal["cpp", "torch"]:
+    def active_implementation(self) -> Literal["cpp", "cuda", "torch"]:
         """Implementation :meth:`forward` uses for the table's current device (may build the kernel)."""
-        return "cpp" if self._use_cpp(self.table.device) else "torch"
+        kernel = self._kernel(self.table.device)
+        if kernel is None:
+            return "torch"
+        return "cuda" if self.table.device.type == "cuda" else "cpp"
 
-    def _use_cpp(self, device: torch.device) -> bool:
-        if device.type != "cpu" or self.implementation == "torch":
-            return False
-        if self.features_per_level not in CPP_FEATURES_PER_LEVEL:
-            return False
-        if self.implementation == "cpp" and not _cpp.extension_available():
-            raise RuntimeError(f"implementation='cpp' but the C++ kernel cannot be built: {_cpp.extension_error()}")
-        return _cpp.extension_available()
+    def _kernel(self, device: torch.device) -> _OpNamespace | None:
+        """The ops of the kernel that encodes tensors on ``device`` (C++ on CPU, CUDA on CUDA), or
+        ``None`` for the torch implementation (builds the kernel on first call)."""
+        if self.implementation == "torch" or self.features_per_level not in CPP_FEATURES_PER_LEVEL:
+            return None
+        if device.type == "cpu":
+            extension, required = _cpp.CPU_KERNELS, self.implementation == "cpp"
+        elif device.type == "cuda" and self.implementation != "cpp":
+            extension, required = _cpp.CUDA_HASH_GRID, self.implementation == "cuda"
+        else:
+            return None
+        if required:
+            try:
+                return extension.require()
+            except RuntimeError as exc:
+                raise RuntimeError(f"implementation={self.implementation!r} but {exc}") from exc
+        return extension.load()
 
     def forward(self, positions: Tensor) -> Tensor:
         """Encode points.
@@ -344,8 +376,9 @@ class HashGridEncoding(nn.Module):
                 f"positions must be a float tensor of shape [..., 3], got {positions.dtype} {tuple(positions.shape)}"
             )
         flat = positions.reshape(-1, 3).to(torch.float32).contiguous()
-        if self._use_cpp(flat.device):
-            out = hash_encoding_cpp(flat, self.table, self.layout)
+        kernel = self._kernel(flat.device)
+        if kernel is not None:
+            out = _KernelHashGrid.apply(flat, self.table, self.layout, kernel)
         else:
             out = hash_encoding_torch(flat, self.table, self.layout)
         return out.view(*positions.shape[:-1], self.get_out_dim())
@@ -368,7 +401,7 @@ class HashGridEncoding(nn.Module):
         if not (torch.is_grad_enabled() and self.table.requires_grad):  # nothing to join: no positions to keep
             return encoding
         flat = positions.to(torch.float32).contiguous()
-        return _PrecomputedEncoding.apply(flat, self.table, self.layout, encoding, self._use_cpp(flat.device))
+        return _PrecomputedEncoding.apply(flat, self.table, self.layout, encoding, self._kernel(flat.device))
 
     def extra_repr(self) -> str:
         return (

@@ -258,8 +258,9 @@ class ScalarFieldConfig(InstantiateConfig):
     """Coarsest grid resolution (cells per axis of the contracted cube)."""
     max_resolution: int = 2048
     """Finest grid resolution (cells per axis of the contracted cube)."""
-    encoder_implementation: Literal["auto", "cpp", "torch"] = "auto"
-    """Hash-grid kernel: "auto" uses the C++ CPU kernel on CPU when it builds, torch otherwise / on CUDA."""
+    encoder_implementation: Literal["auto", "cpp", "cuda", "torch"] = "auto"
+    """Hash-grid kernel: "auto" uses the C++ kernel on CPU and the CUDA kernel on CUDA, each when it
+    builds (a warning says when not), torch otherwise."""
     hidden_dim: int = 64
     """Width of the decoder's hidden layers. The paper's decoder is 128 wide (Sec. 4); 64 (Instant-NGP's
     width) trains 1.33-1.37x faster on the CPU (castle-P30, fox) with held-out PSNR at least as high at
