@@ -31,6 +31,7 @@
 #include <torch/library.h>
 
 #include "check.h"
+#include "hash_grid_checks.h"
 
 #include <omp.h>
 #ifdef __linux__
@@ -239,46 +240,26 @@ at::Tensor empty_huge_paged(at::IntArrayRef sizes, const at::TensorOptions& opti
   return at::empty(sizes, options);
 }
 
-// Validated per-level geometry; level l owns rows [level_offsets[l], level_offsets[l + 1]).
+constexpr const char* kWho = "hash_grid cpp";
+
+// Per-level geometry of the kernel, from the checked layout (hash_grid_checks.h).
 std::vector<Level> make_levels(at::IntArrayRef level_offsets, at::IntArrayRef resolutions, int64_t hashmap_size,
                                int64_t table_rows) {
-  const int64_t num_levels = static_cast<int64_t>(resolutions.size());
-  SCALAR_CHECK(num_levels >= 1, "hash_grid cpp: need at least one level");
-  SCALAR_CHECK(static_cast<int64_t>(level_offsets.size()) == num_levels + 1,
-               "hash_grid cpp: level_offsets must have num_levels + 1 entries");
-  SCALAR_CHECK(hashmap_size >= 1 && hashmap_size <= (int64_t{1} << 31) && (hashmap_size & (hashmap_size - 1)) == 0,
-               "hash_grid cpp: hashmap_size must be a power of two <= 2^31, got ", hashmap_size);
-  SCALAR_CHECK(level_offsets[0] == 0 && level_offsets[num_levels] == table_rows,
-               "hash_grid cpp: level_offsets must start at 0 and end at the table's row count (", table_rows, ")");
-  std::vector<Level> levels(num_levels);
-  for (int64_t l = 0; l < num_levels; ++l) {
-    const int64_t res = resolutions[l];
-    SCALAR_CHECK(res >= 1 && res < (int64_t{1} << 24), "hash_grid cpp: resolution must be in [1, 2^24), got ", res);
-    const int64_t verts = (res + 1) * (res + 1) * (res + 1);
+  const std::vector<scalar_nerf::LevelSpec> specs =
+      scalar_nerf::level_specs(level_offsets, resolutions, hashmap_size, table_rows, kWho);
+  std::vector<Level> levels(specs.size());
+  for (size_t l = 0; l < specs.size(); ++l) {
+    const scalar_nerf::LevelSpec& spec = specs[l];
     Level& lv = levels[l];
-    lv.scale = static_cast<float>(res);
-    lv.res = static_cast<int32_t>(res);
-    lv.dense = verts <= hashmap_size;
-    lv.stride = static_cast<uint32_t>(res + 1);
+    lv.scale = static_cast<float>(spec.res);
+    lv.res = static_cast<int32_t>(spec.res);
+    lv.dense = spec.dense;
+    lv.stride = static_cast<uint32_t>(spec.res + 1);
     lv.mask = static_cast<uint32_t>(hashmap_size - 1);
-    lv.offset = level_offsets[l];
-    lv.rows = level_offsets[l + 1] - level_offsets[l];
-    const int64_t expected = lv.dense ? verts : hashmap_size;
-    SCALAR_CHECK(lv.rows == expected, "hash_grid cpp: level ", l, " has ", lv.rows, " rows, expected ", expected);
+    lv.offset = spec.offset;
+    lv.rows = spec.rows;
   }
   return levels;
-}
-
-void check_float_cpu(const at::Tensor& t, const char* name) {
-  SCALAR_CHECK(t.device().is_cpu(), "hash_grid cpp: ", name, " must be a CPU tensor, got ", t.device());
-  SCALAR_CHECK(t.scalar_type() == at::kFloat, "hash_grid cpp: ", name, " must be float32, got ", t.scalar_type());
-  SCALAR_CHECK(t.dim() == 2, "hash_grid cpp: ", name, " must be 2-D, got shape ", t.sizes());
-  SCALAR_CHECK(t.is_contiguous(), "hash_grid cpp: ", name, " must be contiguous");
-}
-
-void check_features(int64_t f) {
-  SCALAR_CHECK(f == 1 || f == 2 || f == 4 || f == 8, "hash_grid cpp: features_per_level must be 1, 2, 4 or 8, got ",
-               f);
 }
 
 // Threads for n points: at most at::get_num_threads(), and at least ~1024 points per thread.
@@ -289,11 +270,10 @@ int num_threads_for(int64_t n) {
 // positions [N, 3], table [rows, F] -> features [N, L * F] (level l in columns l*F .. l*F+F-1).
 at::Tensor hash_grid_forward(const at::Tensor& positions, const at::Tensor& table, at::IntArrayRef level_offsets,
                              at::IntArrayRef resolutions, int64_t hashmap_size) {
-  check_float_cpu(positions, "positions");
-  SCALAR_CHECK(positions.size(1) == 3, "hash_grid cpp: positions must be [N, 3], got ", positions.sizes());
-  check_float_cpu(table, "table");
+  scalar_nerf::check_positions(positions, /*cuda=*/false, kWho);
+  scalar_nerf::check_float_matrix(table, "table", /*cuda=*/false, kWho);
   const int64_t f = table.size(1);
-  check_features(f);
+  scalar_nerf::check_features(f, kWho);
   const std::vector<Level> levels = make_levels(level_offsets, resolutions, hashmap_size, table.size(0));
   const int64_t n = positions.size(0);
   at::Tensor out = empty_huge_paged({n, static_cast<int64_t>(levels.size()) * f}, positions.options());
@@ -314,17 +294,14 @@ at::Tensor hash_grid_forward(const at::Tensor& positions, const at::Tensor& tabl
 // grad_out [N, L * F], positions [N, 3] -> gradient of the table [rows, F].
 at::Tensor hash_grid_backward(const at::Tensor& grad_out, const at::Tensor& positions, at::IntArrayRef level_offsets,
                               at::IntArrayRef resolutions, int64_t hashmap_size, int64_t features_per_level) {
-  check_float_cpu(positions, "positions");
-  SCALAR_CHECK(positions.size(1) == 3, "hash_grid cpp: positions must be [N, 3], got ", positions.sizes());
-  check_float_cpu(grad_out, "grad_out");
+  scalar_nerf::check_positions(positions, /*cuda=*/false, kWho);
   const int64_t f = features_per_level;
-  check_features(f);
+  scalar_nerf::check_features(f, kWho);
   const int64_t n = positions.size(0);
-  SCALAR_CHECK(grad_out.size(0) == n && grad_out.size(1) == static_cast<int64_t>(resolutions.size()) * f,
-               "hash_grid cpp: grad_out must be [N, num_levels * F], got ", grad_out.sizes());
-  SCALAR_CHECK(!level_offsets.empty(), "hash_grid cpp: level_offsets must not be empty");
-  const std::vector<Level> levels = make_levels(level_offsets, resolutions, hashmap_size, level_offsets.back());
-  at::Tensor grad_table = empty_huge_paged({level_offsets.back(), f}, grad_out.options());
+  scalar_nerf::check_grad_out(grad_out, n, static_cast<int64_t>(resolutions.size()), f, /*cuda=*/false, kWho);
+  const int64_t table_rows = scalar_nerf::table_rows_of(level_offsets, kWho);
+  const std::vector<Level> levels = make_levels(level_offsets, resolutions, hashmap_size, table_rows);
+  at::Tensor grad_table = empty_huge_paged({table_rows, f}, grad_out.options());
   grad_table.zero_();
   if (n == 0) return grad_table;
   const float* pos = positions.data_ptr<float>();

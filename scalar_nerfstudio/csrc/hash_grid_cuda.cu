@@ -27,8 +27,10 @@
 #include <cuda_runtime.h>
 
 #include <cstdint>
+#include <vector>
 
 #include "check.h"
+#include "hash_grid_checks.h"
 
 namespace {
 
@@ -141,52 +143,32 @@ __global__ void backward_kernel(const float* __restrict__ positions, const float
   }
 }
 
+constexpr const char* kWho = "hash_grid cuda";
+
+// Per-level geometry of the kernels, from the checked layout (hash_grid_checks.h).
 Levels make_levels(at::IntArrayRef level_offsets, at::IntArrayRef resolutions, int64_t hashmap_size,
                    int64_t table_rows) {
   const int64_t num_levels = static_cast<int64_t>(resolutions.size());
-  SCALAR_CHECK(num_levels >= 1 && num_levels <= kMaxLevels, "hash_grid cuda: need 1 to ", kMaxLevels,
-               " levels, got ", num_levels);
-  SCALAR_CHECK(static_cast<int64_t>(level_offsets.size()) == num_levels + 1,
-               "hash_grid cuda: level_offsets must have num_levels + 1 entries");
-  SCALAR_CHECK(hashmap_size >= 1 && hashmap_size <= (int64_t{1} << 31) && (hashmap_size & (hashmap_size - 1)) == 0,
-               "hash_grid cuda: hashmap_size must be a power of two <= 2^31, got ", hashmap_size);
-  SCALAR_CHECK(level_offsets[0] == 0 && level_offsets[num_levels] == table_rows,
-               "hash_grid cuda: level_offsets must start at 0 and end at the table's row count (", table_rows, ")");
+  SCALAR_CHECK(num_levels <= kMaxLevels, kWho, ": at most ", kMaxLevels, " levels, got ", num_levels);
+  const std::vector<scalar_nerf::LevelSpec> specs =
+      scalar_nerf::level_specs(level_offsets, resolutions, hashmap_size, table_rows, kWho);
   Levels levels{};
   levels.mask = static_cast<uint32_t>(hashmap_size - 1);
   levels.count = static_cast<int32_t>(num_levels);
   for (int64_t l = 0; l < num_levels; ++l) {
-    const int64_t res = resolutions[l];
-    SCALAR_CHECK(res >= 1 && res < (int64_t{1} << 24), "hash_grid cuda: resolution must be in [1, 2^24), got ", res);
-    const int64_t verts = (res + 1) * (res + 1) * (res + 1);
-    const bool dense = verts <= hashmap_size;
-    const int64_t rows = level_offsets[l + 1] - level_offsets[l];
-    const int64_t expected = dense ? verts : hashmap_size;
-    SCALAR_CHECK(rows == expected, "hash_grid cuda: level ", l, " has ", rows, " rows, expected ", expected);
-    levels.offset[l] = level_offsets[l];
-    levels.scale[l] = static_cast<float>(res);
-    levels.res[l] = static_cast<int32_t>(res);
-    levels.stride[l] = static_cast<uint32_t>(res + 1);
-    levels.dense[l] = dense;
+    const scalar_nerf::LevelSpec& spec = specs[l];
+    levels.offset[l] = spec.offset;
+    levels.scale[l] = static_cast<float>(spec.res);
+    levels.res[l] = static_cast<int32_t>(spec.res);
+    levels.stride[l] = static_cast<uint32_t>(spec.res + 1);
+    levels.dense[l] = spec.dense;
   }
   return levels;
 }
 
-void check_float_cuda(const at::Tensor& t, const char* name) {
-  SCALAR_CHECK(t.device().is_cuda(), "hash_grid cuda: ", name, " must be a CUDA tensor, got ", t.device());
-  SCALAR_CHECK(t.scalar_type() == at::kFloat, "hash_grid cuda: ", name, " must be float32, got ", t.scalar_type());
-  SCALAR_CHECK(t.dim() == 2, "hash_grid cuda: ", name, " must be 2-D, got shape ", t.sizes());
-  SCALAR_CHECK(t.is_contiguous(), "hash_grid cuda: ", name, " must be contiguous");
-}
-
-void check_features(int64_t f) {
-  SCALAR_CHECK(f == 1 || f == 2 || f == 4 || f == 8,
-               "hash_grid cuda: features_per_level must be 1, 2, 4 or 8, got ", f);
-}
-
 void check_launch(const char* what) {
   const cudaError_t err = cudaGetLastError();
-  SCALAR_CHECK(err == cudaSuccess, "hash_grid cuda: ", what, " failed to launch: ", cudaGetErrorString(err));
+  SCALAR_CHECK(err == cudaSuccess, kWho, ": ", what, " failed to launch: ", cudaGetErrorString(err));
 }
 
 dim3 grid_for(int64_t n, int num_levels) {
@@ -196,16 +178,15 @@ dim3 grid_for(int64_t n, int num_levels) {
 // positions [N, 3], table [rows, F] -> features [N, L * F] (level l in columns l*F .. l*F+F-1).
 at::Tensor hash_grid_forward(const at::Tensor& positions, const at::Tensor& table, at::IntArrayRef level_offsets,
                              at::IntArrayRef resolutions, int64_t hashmap_size) {
-  check_float_cuda(positions, "positions");
-  SCALAR_CHECK(positions.size(1) == 3, "hash_grid cuda: positions must be [N, 3], got ", positions.sizes());
-  check_float_cuda(table, "table");
-  SCALAR_CHECK(table.device() == positions.device(), "hash_grid cuda: table is on ", table.device(),
-               ", positions on ", positions.device());
+  scalar_nerf::check_positions(positions, /*cuda=*/true, kWho);
+  scalar_nerf::check_float_matrix(table, "table", /*cuda=*/true, kWho);
+  SCALAR_CHECK(table.device() == positions.device(), kWho, ": table is on ", table.device(), ", positions on ",
+               positions.device());
   const int64_t f = table.size(1);
-  check_features(f);
+  scalar_nerf::check_features(f, kWho);
   const Levels levels = make_levels(level_offsets, resolutions, hashmap_size, table.size(0));
   const int64_t n = positions.size(0);
-  SCALAR_CHECK(n < (int64_t{1} << 31) * kThreads, "hash_grid cuda: too many points: ", n);
+  SCALAR_CHECK(n < (int64_t{1} << 31) * kThreads, kWho, ": too many points: ", n);
   at::Tensor out = at::empty({n, static_cast<int64_t>(levels.count) * f}, positions.options());
   if (n == 0) return out;
   const c10::cuda::CUDAGuard guard(positions.device());
@@ -227,20 +208,17 @@ at::Tensor hash_grid_forward(const at::Tensor& positions, const at::Tensor& tabl
 // grad_out [N, L * F], positions [N, 3] -> gradient of the table [rows, F].
 at::Tensor hash_grid_backward(const at::Tensor& grad_out, const at::Tensor& positions, at::IntArrayRef level_offsets,
                               at::IntArrayRef resolutions, int64_t hashmap_size, int64_t features_per_level) {
-  check_float_cuda(positions, "positions");
-  SCALAR_CHECK(positions.size(1) == 3, "hash_grid cuda: positions must be [N, 3], got ", positions.sizes());
-  check_float_cuda(grad_out, "grad_out");
-  SCALAR_CHECK(grad_out.device() == positions.device(), "hash_grid cuda: grad_out is on ", grad_out.device(),
-               ", positions on ", positions.device());
+  scalar_nerf::check_positions(positions, /*cuda=*/true, kWho);
   const int64_t f = features_per_level;
-  check_features(f);
+  scalar_nerf::check_features(f, kWho);
   const int64_t n = positions.size(0);
-  SCALAR_CHECK(grad_out.size(0) == n && grad_out.size(1) == static_cast<int64_t>(resolutions.size()) * f,
-               "hash_grid cuda: grad_out must be [N, num_levels * F], got ", grad_out.sizes());
-  SCALAR_CHECK(!level_offsets.empty(), "hash_grid cuda: level_offsets must not be empty");
-  const Levels levels = make_levels(level_offsets, resolutions, hashmap_size, level_offsets.back());
-  SCALAR_CHECK(n < (int64_t{1} << 31) * kThreads, "hash_grid cuda: too many points: ", n);
-  at::Tensor grad_table = at::zeros({level_offsets.back(), f}, grad_out.options());
+  scalar_nerf::check_grad_out(grad_out, n, static_cast<int64_t>(resolutions.size()), f, /*cuda=*/true, kWho);
+  SCALAR_CHECK(grad_out.device() == positions.device(), kWho, ": grad_out is on ", grad_out.device(),
+               ", positions on ", positions.device());
+  const int64_t table_rows = scalar_nerf::table_rows_of(level_offsets, kWho);
+  const Levels levels = make_levels(level_offsets, resolutions, hashmap_size, table_rows);
+  SCALAR_CHECK(n < (int64_t{1} << 31) * kThreads, kWho, ": too many points: ", n);
+  at::Tensor grad_table = at::zeros({table_rows, f}, grad_out.options());
   if (n == 0) return grad_table;
   const c10::cuda::CUDAGuard guard(positions.device());
   const cudaStream_t stream = c10::cuda::getCurrentCUDAStream();
