@@ -294,6 +294,28 @@ def test_build_failure_falls_back_to_torch(monkeypatch: pytest.MonkeyPatch, capl
         HashGridEncoding(num_levels=4, log2_hashmap_size=12, implementation="cpp")(torch.rand(10, 3))
 
 
+def test_cuda_build_failure_falls_back_to_torch(monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
+    """A CUDA machine without nvcc (or where the build fails) trains with the torch hash grid after
+    one warning; asking for the kernel by name is an error that says why. Runs without a GPU: only
+    the choice is made, nothing is allocated on the device."""
+
+    def failing_load(*args: object, **kwargs: object) -> None:
+        raise OSError("CUDA_HOME environment variable is not set")
+
+    monkeypatch.setattr(_cpp.CUDA_HASH_GRID, "_attempted", False)
+    monkeypatch.setattr(_cpp.CUDA_HASH_GRID, "_ops", None)
+    monkeypatch.setattr(_cpp.CUDA_HASH_GRID, "_error", None)
+    monkeypatch.setattr(torch.utils.cpp_extension, "load", failing_load)
+    with caplog.at_level(logging.WARNING, logger=_cpp.__name__):
+        assert make_encoding(2).implementation_for("cuda") == "torch"
+        assert make_encoding(2).implementation_for("cuda") == "torch"  # the build is tried once
+    assert len(caplog.records) == 1 and "CUDA hash-grid kernels" in caplog.records[0].getMessage()
+    with pytest.raises(RuntimeError, match="implementation='cuda' but the CUDA hash-grid kernels are unavailable: .*CUDA_HOME"):
+        HashGridEncoding(num_levels=4, log2_hashmap_size=12, implementation="cuda").implementation_for("cuda")
+    cpp_on_cuda = HashGridEncoding(num_levels=4, log2_hashmap_size=12, implementation="cpp")
+    assert cpp_on_cuda.implementation_for("cuda") == "torch"  # "cpp" names the CPU's kernel only
+
+
 @needs_cuda
 @pytest.mark.parametrize("implementation", ["auto", "torch"])
 def test_cuda_matches_cpu_reference(implementation: str) -> None:

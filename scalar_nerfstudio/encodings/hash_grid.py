@@ -338,10 +338,19 @@ class HashGridEncoding(nn.Module):
     @property
     def active_implementation(self) -> Literal["cpp", "cuda", "torch"]:
         """Implementation :meth:`forward` uses for the table's current device (may build the kernel)."""
-        kernel = self._kernel(self.table.device)
-        if kernel is None:
+        return self.implementation_for(self.table.device)
+
+    def implementation_for(self, device: torch.device | str) -> Literal["cpp", "cuda", "torch"]:
+        """Implementation :meth:`forward` uses for tensors on ``device`` (may build the kernel; allocates
+        nothing there).
+
+        Raises:
+            RuntimeError: if ``implementation`` names a kernel for that device that cannot be built.
+        """
+        device = torch.device(device)
+        if self._kernel(device) is None:
             return "torch"
-        return "cuda" if self.table.device.type == "cuda" else "cpp"
+        return "cuda" if device.type == "cuda" else "cpp"
 
     def _kernel(self, device: torch.device) -> _OpNamespace | None:
         """The ops of the kernel that encodes tensors on ``device`` (C++ on CPU, CUDA on CUDA), or
