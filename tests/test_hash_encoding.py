@@ -274,15 +274,20 @@ def test_cpp_rejects_bad_inputs() -> None:
         hash_encoding_cpp(positions, enc.table[:-1], enc.layout)
 
 
-def test_build_failure_falls_back_to_torch(monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
-    def failing_load(*args: object, **kwargs: object) -> None:
-        raise OSError("no C++ compiler")
+def make_builds_fail(monkeypatch: pytest.MonkeyPatch, extension: _cpp.JitExtension, message: str) -> None:
+    """A fresh loader state for ``extension`` (restored by monkeypatch) with a build that fails with ``message``."""
 
-    # A fresh loader state (restored by monkeypatch) with a build that fails.
-    monkeypatch.setattr(_cpp.CPU_KERNELS, "_attempted", False)
-    monkeypatch.setattr(_cpp.CPU_KERNELS, "_ops", None)
-    monkeypatch.setattr(_cpp.CPU_KERNELS, "_error", None)
+    def failing_load(*args: object, **kwargs: object) -> None:
+        raise OSError(message)
+
+    monkeypatch.setattr(extension, "_attempted", False)
+    monkeypatch.setattr(extension, "_ops", None)
+    monkeypatch.setattr(extension, "_error", None)
     monkeypatch.setattr(torch.utils.cpp_extension, "load", failing_load)
+
+
+def test_build_failure_falls_back_to_torch(monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
+    make_builds_fail(monkeypatch, _cpp.CPU_KERNELS, "no C++ compiler")
     with caplog.at_level(logging.WARNING, logger=_cpp.__name__):
         enc = HashGridEncoding(num_levels=4, features_per_level=2, log2_hashmap_size=12, max_resolution=64)
         assert enc.active_implementation == "torch"
@@ -298,14 +303,7 @@ def test_cuda_build_failure_falls_back_to_torch(monkeypatch: pytest.MonkeyPatch,
     """A CUDA machine without nvcc (or where the build fails) trains with the torch hash grid after
     one warning; asking for the kernel by name is an error that says why. Runs without a GPU: only
     the choice is made, nothing is allocated on the device."""
-
-    def failing_load(*args: object, **kwargs: object) -> None:
-        raise OSError("CUDA_HOME environment variable is not set")
-
-    monkeypatch.setattr(_cpp.CUDA_HASH_GRID, "_attempted", False)
-    monkeypatch.setattr(_cpp.CUDA_HASH_GRID, "_ops", None)
-    monkeypatch.setattr(_cpp.CUDA_HASH_GRID, "_error", None)
-    monkeypatch.setattr(torch.utils.cpp_extension, "load", failing_load)
+    make_builds_fail(monkeypatch, _cpp.CUDA_HASH_GRID, "CUDA_HOME environment variable is not set")
     with caplog.at_level(logging.WARNING, logger=_cpp.__name__):
         assert make_encoding(2).implementation_for("cuda") == "torch"
         assert make_encoding(2).implementation_for("cuda") == "torch"  # the build is tried once

@@ -270,10 +270,7 @@ int num_threads_for(int64_t n) {
 // positions [N, 3], table [rows, F] -> features [N, L * F] (level l in columns l*F .. l*F+F-1).
 at::Tensor hash_grid_forward(const at::Tensor& positions, const at::Tensor& table, at::IntArrayRef level_offsets,
                              at::IntArrayRef resolutions, int64_t hashmap_size) {
-  scalar_nerf::check_positions(positions, /*cuda=*/false, kWho);
-  scalar_nerf::check_float_matrix(table, "table", /*cuda=*/false, kWho);
-  const int64_t f = table.size(1);
-  scalar_nerf::check_features(f, kWho);
+  const int64_t f = scalar_nerf::check_forward_call(positions, table, /*cuda=*/false, kWho);
   const std::vector<Level> levels = make_levels(level_offsets, resolutions, hashmap_size, table.size(0));
   const int64_t n = positions.size(0);
   at::Tensor out = empty_huge_paged({n, static_cast<int64_t>(levels.size()) * f}, positions.options());
@@ -294,12 +291,10 @@ at::Tensor hash_grid_forward(const at::Tensor& positions, const at::Tensor& tabl
 // grad_out [N, L * F], positions [N, 3] -> gradient of the table [rows, F].
 at::Tensor hash_grid_backward(const at::Tensor& grad_out, const at::Tensor& positions, at::IntArrayRef level_offsets,
                               at::IntArrayRef resolutions, int64_t hashmap_size, int64_t features_per_level) {
-  scalar_nerf::check_positions(positions, /*cuda=*/false, kWho);
   const int64_t f = features_per_level;
-  scalar_nerf::check_features(f, kWho);
+  const int64_t table_rows = scalar_nerf::check_backward_call(
+      grad_out, positions, level_offsets, static_cast<int64_t>(resolutions.size()), f, /*cuda=*/false, kWho);
   const int64_t n = positions.size(0);
-  scalar_nerf::check_grad_out(grad_out, n, static_cast<int64_t>(resolutions.size()), f, /*cuda=*/false, kWho);
-  const int64_t table_rows = scalar_nerf::table_rows_of(level_offsets, kWho);
   const std::vector<Level> levels = make_levels(level_offsets, resolutions, hashmap_size, table_rows);
   at::Tensor grad_table = empty_huge_paged({table_rows, f}, grad_out.options());
   grad_table.zero_();

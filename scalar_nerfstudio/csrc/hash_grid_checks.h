@@ -84,4 +84,26 @@ inline void check_grad_out(const at::Tensor& grad_out, int64_t n, int64_t num_le
                ": grad_out must be [N, num_levels * F], got ", grad_out.sizes());
 }
 
+// A forward call: positions [N, 3] and table [rows, F] on one device of the kernel's kind. Returns F.
+inline int64_t check_forward_call(const at::Tensor& positions, const at::Tensor& table, bool cuda, const char* who) {
+  check_positions(positions, cuda, who);
+  check_float_matrix(table, "table", cuda, who);
+  SCALAR_CHECK(table.device() == positions.device(), who, ": table is on ", table.device(), ", positions on ",
+               positions.device());
+  check_features(table.size(1), who);
+  return table.size(1);
+}
+
+// A backward call: positions [N, 3] and grad_out [N, L * F] on one device of the kernel's kind.
+// Returns the table's row count.
+inline int64_t check_backward_call(const at::Tensor& grad_out, const at::Tensor& positions, at::IntArrayRef level_offsets,
+                                   int64_t num_levels, int64_t f, bool cuda, const char* who) {
+  check_positions(positions, cuda, who);
+  check_features(f, who);
+  check_grad_out(grad_out, positions.size(0), num_levels, f, cuda, who);
+  SCALAR_CHECK(grad_out.device() == positions.device(), who, ": grad_out is on ", grad_out.device(),
+               ", positions on ", positions.device());
+  return table_rows_of(level_offsets, who);
+}
+
 }  // namespace scalar_nerf

@@ -178,12 +178,7 @@ dim3 grid_for(int64_t n, int num_levels) {
 // positions [N, 3], table [rows, F] -> features [N, L * F] (level l in columns l*F .. l*F+F-1).
 at::Tensor hash_grid_forward(const at::Tensor& positions, const at::Tensor& table, at::IntArrayRef level_offsets,
                              at::IntArrayRef resolutions, int64_t hashmap_size) {
-  scalar_nerf::check_positions(positions, /*cuda=*/true, kWho);
-  scalar_nerf::check_float_matrix(table, "table", /*cuda=*/true, kWho);
-  SCALAR_CHECK(table.device() == positions.device(), kWho, ": table is on ", table.device(), ", positions on ",
-               positions.device());
-  const int64_t f = table.size(1);
-  scalar_nerf::check_features(f, kWho);
+  const int64_t f = scalar_nerf::check_forward_call(positions, table, /*cuda=*/true, kWho);
   const Levels levels = make_levels(level_offsets, resolutions, hashmap_size, table.size(0));
   const int64_t n = positions.size(0);
   SCALAR_CHECK(n < (int64_t{1} << 31) * kThreads, kWho, ": too many points: ", n);
@@ -208,14 +203,10 @@ at::Tensor hash_grid_forward(const at::Tensor& positions, const at::Tensor& tabl
 // grad_out [N, L * F], positions [N, 3] -> gradient of the table [rows, F].
 at::Tensor hash_grid_backward(const at::Tensor& grad_out, const at::Tensor& positions, at::IntArrayRef level_offsets,
                               at::IntArrayRef resolutions, int64_t hashmap_size, int64_t features_per_level) {
-  scalar_nerf::check_positions(positions, /*cuda=*/true, kWho);
   const int64_t f = features_per_level;
-  scalar_nerf::check_features(f, kWho);
+  const int64_t table_rows = scalar_nerf::check_backward_call(
+      grad_out, positions, level_offsets, static_cast<int64_t>(resolutions.size()), f, /*cuda=*/true, kWho);
   const int64_t n = positions.size(0);
-  scalar_nerf::check_grad_out(grad_out, n, static_cast<int64_t>(resolutions.size()), f, /*cuda=*/true, kWho);
-  SCALAR_CHECK(grad_out.device() == positions.device(), kWho, ": grad_out is on ", grad_out.device(),
-               ", positions on ", positions.device());
-  const int64_t table_rows = scalar_nerf::table_rows_of(level_offsets, kWho);
   const Levels levels = make_levels(level_offsets, resolutions, hashmap_size, table_rows);
   SCALAR_CHECK(n < (int64_t{1} << 31) * kThreads, kWho, ": too many points: ", n);
   at::Tensor grad_table = at::zeros({table_rows, f}, grad_out.options());
