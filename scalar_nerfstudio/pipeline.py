@@ -129,7 +129,9 @@ class ScalarPipelineConfig(VanillaPipelineConfig):
     is not given, is bounded by them: rays end where they leave the sphere around the centre of
     twice the radius within which 99.9 % of the surface points of up to 64 training images lie
     (data/depth.py); the radius is recorded in the run's config.yml. False: rays run to the far
-    plane, as before 2026-11-26 (docs/town.md, "The scene bounded by its depth images")."""
+    plane, as before 2026-11-26 (docs/town.md, "The scene bounded by its depth images"). Scenes
+    without depth images stay unbounded: a bound broke castle-P30 (docs/town.md, "A bound on a real
+    capture")."""
     train_blocks: bool = True
     """False: train the global phase only (blocks can then be trained with scalar-nerf-block)."""
     only_block: Optional[int] = None
