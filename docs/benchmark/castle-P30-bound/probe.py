@@ -1,3 +1,4 @@
+"""Accumulation, depth and distance from the centre of the surfaces in the top, middle and bottom thirds of held-out view 0."""
 import sys, torch
 from pathlib import Path
 from nerfstudio.utils.eval_utils import eval_setup
@@ -12,4 +13,4 @@ for cfg in sys.argv[1:]:
     H = r.shape[0]
     for name, sl in (("top", slice(0, H//3)), ("mid", slice(H//3, 2*H//3)), ("bottom", slice(2*H//3, H))):
         print(cfg.split('/')[3], name, "acc %.2f" % out["accumulation"][sl].mean().item(), "depth med %.2f" % out["depth"][sl].median().item(), "r med %.2f  r>6 %.2f" % (r[sl].median().item(), (r[sl] > 6).float().mean().item()))
-    print("cam origin", rays.origins[0,0].tolist(), "radius", getattr(p.model.config, "scene_radius", None) or getattr(p.model.global_model.config, "scene_radius", None) if hasattr(p.model, "global_model") else None)
+    print("cam origin", rays.origins[0, 0].tolist(), "radius", p.model.global_model.config.scene_radius)
