@@ -76,11 +76,12 @@ def run_dirs(output_dir: Path, method: str = "scalar-nerf") -> List[Path]:
     return sorted(p.parent for p in output_dir.glob(f"*/{method}/*/config.yml"))
 
 
-def ns_eval(run: Path, output: Path) -> subprocess.CompletedProcess:
-    """``ns-eval`` of a run folder as a user runs it, writing ``output`` (JSON)."""
+def ns_eval(run: Path, output: Path, cwd: Optional[Path] = None) -> subprocess.CompletedProcess:
+    """``ns-eval`` of a run folder as a user runs it, writing ``output`` (JSON), started in ``cwd``
+    (a run trained with a relative ``--data`` is evaluated from the directory it was trained in)."""
     return subprocess.run(
         [sys.executable, "-m", "nerfstudio.scripts.eval", "--load-config", str(run / "config.yml"), "--output-path", str(output)],
-        capture_output=True, text=True, timeout=600,
+        capture_output=True, text=True, timeout=600, cwd=cwd,
     )
 
 

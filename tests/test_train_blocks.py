@@ -23,7 +23,8 @@ import yaml
 from conftest import TINY, ns_eval, ns_train_command, run_dirs, trained_block_tensors
 from scalar_nerfstudio.blocks.split import save_blocks_json, split_cameras
 from scalar_nerfstudio.runs import latest_checkpoint_step
-from scalar_nerfstudio.distributed.executors import LocalExecutor, thread_env
+from scalar_nerfstudio.distributed import TrainBlocksError
+from scalar_nerfstudio.distributed.executors import LocalExecutor, local_gpu_slots, thread_env
 from scalar_nerfstudio.distributed.run_folders import DONE_MARKER, GlobalRun, prepare_blocks, write_done
 from scalar_nerfstudio.distributed.scheduling import block_command, default_cpus_per_block
 from scalar_nerfstudio.scripts import train_blocks
@@ -99,6 +100,23 @@ def test_threads_and_pool_size_do_not_oversubscribe() -> None:
     assert LocalExecutor(2, 1, 0).slots == 2
     assert LocalExecutor(2, 2, 0).slots == 1
     assert LocalExecutor(8, 3, 0).slots == 2
+
+
+def test_local_blocks_share_a_gpu_when_asked() -> None:
+    """--gpus-per-block 1/n trains n blocks on each GPU at once (one block rarely keeps a GPU busy);
+    whole GPUs give each block its own; the pool never exceeds the CPUs."""
+    assert local_gpu_slots(1, 2) == ["0", "1"]
+    assert local_gpu_slots(2, 5) == ["0,1", "2,3"]
+    assert local_gpu_slots(0.25, 1) == ["0"] * 4
+    assert local_gpu_slots(0.5, 2) == ["0", "1", "0", "1"]  # spread over the GPUs first
+    pool = LocalExecutor(16, 2, 0.125, gpu_count=1)
+    assert pool.slots == 8 and pool.devices == ["0"] * 8 and "8 blocks per GPU" in pool.description
+    assert LocalExecutor(4, 2, 0.125, gpu_count=1).slots == 2  # 2 CPUs per block on 4 CPUs
+    assert LocalExecutor(16, 1, 1, gpu_count=1).slots == 1  # a whole GPU each: one at a time
+    assert LocalExecutor(16, 1, 1, gpu_count=1).devices == ["0"]
+    for gpus, count, message in ((0.3, 1, "1/n"), (1.5, 2, "whole number"), (2, 1, "has 1 GPU"), (0.5, 0, "no GPU")):
+        with pytest.raises(TrainBlocksError, match=message):
+            LocalExecutor(16, 1, gpus, gpu_count=count)
     run = GlobalRun(Path("/runs/g"), 2, Path("/runs/g/nerfstudio_models/step-000000039.ckpt"), 15)
     command = block_command(run, 1, Path("/o/block1/attempt-3"), 0, None, ["--steps-per-save", "4"])
     assert command[:5] == ["scalar-nerf-block", "--global-run", "/runs/g", "--block", "1"]
@@ -132,13 +150,21 @@ def test_skip_done_set_aside_leftovers_and_stale(tmp_path: Path, capsys) -> None
 
 @pytest.fixture(scope="module")
 def global_run(scene: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A tiny ``scalar-nerf`` run trained through its global phase only (2 blocks in blocks.json)."""
+    """A tiny ``scalar-nerf`` run trained through its global phase only (2 blocks in blocks.json),
+    with the scene given as a relative path (``--data courtyard0``, as users type it), started in the
+    scene's parent folder: every command on it runs from there (``cwd=global_run_cwd``)."""
     output_dir = tmp_path_factory.mktemp("global_only")
-    result = subprocess.run(ns_train_command(scene, output_dir, *TINY, "--pipeline.train-blocks", "False"),
-                            capture_output=True, text=True, timeout=900)
+    result = subprocess.run(ns_train_command(Path(scene.name), output_dir, *TINY, "--pipeline.train-blocks", "False"),
+                            capture_output=True, text=True, timeout=900, cwd=scene.parent)
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     (run,) = run_dirs(output_dir)
     return run
+
+
+@pytest.fixture(scope="module")
+def global_run_cwd(scene: Path) -> Path:
+    """The folder ``global_run`` was trained in (its config names the scene relative to it)."""
+    return scene.parent
 
 
 def _block_processes(out: Path, block: int, attempt: int) -> List[psutil.Process]:
@@ -161,7 +187,7 @@ def _ray_processes(since: float) -> List[str]:
     return left
 
 
-def _assert_block_1_retried_and_assembled(out: Path, tmp_path: Path) -> Tuple[Dict[int, Path], Path]:
+def _assert_block_1_retried_and_assembled(out: Path, tmp_path: Path, cwd: Path) -> Tuple[Dict[int, Path], Path]:
     """Block 1's killed first attempt is set aside, partial (no final checkpoint) and never used; its
     second attempt and block 0's first finished; the assembled run holds both and evaluates.
     Returns (the run of each block, the assembled run)."""
@@ -176,14 +202,14 @@ def _assert_block_1_retried_and_assembled(out: Path, tmp_path: Path) -> Tuple[Di
     sources = json.loads((assembled / "assembled_from.json").read_text())["blocks"]
     assert sources == {str(b): str(r.resolve()) for b, r in runs.items()}
     assert _state(assembled)["_model.blocks_started"].tolist() == [True, True]
-    evaluation = ns_eval(assembled, tmp_path / "eval.json")
+    evaluation = ns_eval(assembled, tmp_path / "eval.json", cwd=cwd)
     assert evaluation.returncode == 0, evaluation.stdout[-3000:] + evaluation.stderr[-3000:]
     assert 5.0 < json.loads((tmp_path / "eval.json").read_text())["results"]["psnr"] < 60.0
     return runs, assembled
 
 
 @pytest.mark.slow
-def test_ray_trains_blocks_in_parallel_retries_a_killed_one_and_fuses(global_run: Path, tmp_path: Path) -> None:
+def test_ray_trains_blocks_in_parallel_retries_a_killed_one_and_fuses(global_run: Path, global_run_cwd: Path, tmp_path: Path) -> None:
     """A real local Ray cluster with 2 CPUs trains the 2 blocks at once, one task each.
 
     Block 1's first attempt is failed from outside, as a crash would: once its ``ns-train`` process
@@ -197,7 +223,7 @@ def test_ray_trains_blocks_in_parallel_retries_a_killed_one_and_fuses(global_run
     started = time.time()
     log_path = tmp_path / "command.log"
     with open(log_path, "w") as log:
-        process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, text=True)
+        process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, text=True, cwd=global_run_cwd)
         killed = both_at_once = False
         deadline = time.time() + 600
         while process.poll() is None and time.time() < deadline and not killed:
@@ -219,7 +245,7 @@ def test_ray_trains_blocks_in_parallel_retries_a_killed_one_and_fuses(global_run
     assert both_at_once, "the two blocks should train at the same time"
     assert "block 1: attempt 1 failed" in output and "kept apart" in output
 
-    runs, assembled = _assert_block_1_retried_and_assembled(out, tmp_path)
+    runs, assembled = _assert_block_1_retried_and_assembled(out, tmp_path, global_run_cwd)
     for block, run in runs.items():
         assert torch.equal(trained_block_tensors(assembled, block)["field.encoder.table"], trained_block_tensors(run, block)["field.encoder.table"])
 
@@ -228,7 +254,7 @@ def test_ray_trains_blocks_in_parallel_retries_a_killed_one_and_fuses(global_run
     print(f"ray: 2 blocks of {BLOCK_STEPS} steps with one retry in {seconds:.0f} s")
 
     # a re-run skips both blocks (no Ray, no training) and reuses the assembled run
-    rerun = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    rerun = subprocess.run(command, capture_output=True, text=True, timeout=300, cwd=global_run_cwd)
     assert rerun.returncode == 0, rerun.stdout[-3000:] + rerun.stderr[-3000:]
     assert rerun.stdout.count("skipped (done before)") == 2 and "already assembled" in rerun.stdout
     assert ": attempt" not in rerun.stdout and "Ray cluster" not in rerun.stdout, "nothing is trained, Ray is not started"
@@ -244,7 +270,7 @@ def _ray_node(attempt_dir: Path) -> str:
 
 
 @pytest.mark.slow
-def test_ray_cluster_of_two_nodes_retries_a_killed_block_on_the_other_node(global_run: Path, tmp_path: Path) -> None:
+def test_ray_cluster_of_two_nodes_retries_a_killed_block_on_the_other_node(global_run: Path, global_run_cwd: Path, tmp_path: Path) -> None:
     """A Ray cluster of several nodes on this machine (``ray.cluster_utils.Cluster``), joined with
     ``--address``: the node running block 1's first attempt is lost, and block 1 is retried on the other.
 
@@ -272,7 +298,7 @@ def test_ray_cluster_of_two_nodes_retries_a_killed_block_on_the_other_node(globa
                    "--cpus-per-block", "1", "--block-steps", str(BLOCK_STEPS), "--output-dir", str(out),
                    "--", "--steps-per-save", "4"]
         with open(log_path, "w") as log:
-            process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, text=True)
+            process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, text=True, cwd=global_run_cwd)
             lost = None
             both_at_once = False
             deadline = time.time() + 600
@@ -306,7 +332,7 @@ def test_ray_cluster_of_two_nodes_retries_a_killed_block_on_the_other_node(globa
     assert _ray_node(failed) == lost.node_id
     assert _ray_node(out / "block1" / "attempt-2") == survivor.node_id, "the retry runs on the surviving node"
     assert _ray_node(out / "block0" / "attempt-1") == survivor.node_id, "block 0 ran beside block 1, on the other node"
-    _assert_block_1_retried_and_assembled(out, tmp_path)
+    _assert_block_1_retried_and_assembled(out, tmp_path, global_run_cwd)
 
     time.sleep(2)
     assert not _ray_processes(started), "every node of the cluster must be shut down"
@@ -314,19 +340,19 @@ def test_ray_cluster_of_two_nodes_retries_a_killed_block_on_the_other_node(globa
 
 
 @pytest.mark.slow
-def test_local_executor_reports_failures_then_trains_and_fuses(global_run: Path, tmp_path: Path) -> None:
+def test_local_executor_reports_failures_then_trains_and_fuses(global_run: Path, global_run_cwd: Path, tmp_path: Path) -> None:
     """Without Ray: a block whose every attempt fails makes the command exit non-zero naming it;
     the same command, fixed, then trains it with the threads asked for and fuses it."""
     out = tmp_path / "blocks"
     base = ["scalar-nerf-train-blocks", str(global_run), "--blocks", "0", "--num-cpus", "2", "--cpus-per-block", "2",
             "--block-steps", str(BLOCK_STEPS), "--output-dir", str(out), "--max-retries", "1"]
-    broken = subprocess.run([*base, "--", "--no-such-option", "1"], capture_output=True, text=True, timeout=600)
+    broken = subprocess.run([*base, "--", "--no-such-option", "1"], capture_output=True, text=True, timeout=600, cwd=global_run_cwd)
     assert broken.returncode == 1
     assert "block(s) 0 failed after 2 attempt(s)" in broken.stderr
     assert sorted(p.name for p in (out / "block0").iterdir()) == ["failed-attempt-1", "failed-attempt-2"]
     assert not run_dirs(out / "assembled")
 
-    result = subprocess.run(base, capture_output=True, text=True, timeout=600)
+    result = subprocess.run(base, capture_output=True, text=True, timeout=600, cwd=global_run_cwd)
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     run = _done_run(out, 0)
     assert "/block0/attempt-3/" in str(run)

@@ -35,6 +35,10 @@ class AttemptJob:
     """The attempt folder (absolute; on a filesystem the worker shares)."""
     args: List[str]
     env: Dict[str, str]
+    cwd: str = ""
+    """The directory the block process starts in: the one ``scalar-nerf-train-blocks`` was started in,
+    so that the relative paths in the global run's config (``--data scene/``) mean what they meant
+    there. Where it is not a directory (another host), the attempt folder."""
 
 
 @dataclass
@@ -100,7 +104,8 @@ def run_attempt(job: AttemptJob) -> AttemptResult:
         where = f"host {host}, Ray node {node}" if node else f"host {host}"
         log.write(f"# {where}, attempt {job.attempt} of block {job.block}\n# {overrides} {shlex.join(command)}\n")
         log.flush()
-        process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, cwd=folder,
+        cwd = job.cwd if job.cwd and os.path.isdir(job.cwd) else folder
+        process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, cwd=cwd,
                                    env={**os.environ, **job.env}, preexec_fn=_die_with_parent)
         returncode = process.wait()
     return AttemptResult(returncode, time.time() - start, host=host, node=node)
@@ -121,32 +126,57 @@ def local_gpus_available() -> bool:
     return torch.cuda.is_available()
 
 
-class LocalExecutor:
-    """A pool of block subprocesses on this machine, ``num_cpus // cpus`` (and GPUs) at a time."""
+def local_gpu_slots(gpus: float, gpu_count: int) -> List[str]:
+    """The ``CUDA_VISIBLE_DEVICES`` of each block slot on a machine with ``gpu_count`` GPUs when each
+    block gets ``gpus`` of them: whole GPUs (``gpus`` >= 1, a whole number) or a share of one
+    (``gpus`` = 1/n: n blocks train on each GPU at once, as Ray's fractional GPUs do).
 
-    def __init__(self, num_cpus: int, cpus: int, gpus: float) -> None:
+    One block process rarely keeps a GPU busy (its steps wait on kernel launches), so sharing lets
+    the blocks of a one-GPU machine train at once instead of one after another.
+    """
+    if gpus <= 0:
+        return []
+    if gpus >= 1:
+        if gpus != int(gpus):
+            raise TrainBlocksError(f"--gpus-per-block {gpus:g}: give a whole number of GPUs, or a share 1/n of one (0.5, 0.25, ...)")
+        if gpu_count < gpus:
+            raise TrainBlocksError(f"--gpus-per-block {gpus:g}: this machine has {gpu_count} GPU(s)")
+        per_block = int(gpus)
+        return [",".join(str(i) for i in range(s * per_block, (s + 1) * per_block)) for s in range(gpu_count // per_block)]
+    blocks_per_gpu = round(1.0 / gpus)
+    if abs(blocks_per_gpu * gpus - 1.0) > 1e-6:
+        raise TrainBlocksError(f"--gpus-per-block {gpus:g}: a share of a GPU must be 1/n (0.5, 0.25, 0.125, ...) with --executor local")
+    if gpu_count < 1:
+        raise TrainBlocksError(f"--gpus-per-block {gpus:g}: this machine has no GPU")
+    return [str(i) for _ in range(blocks_per_gpu) for i in range(gpu_count)]
+
+
+class LocalExecutor:
+    """A pool of block subprocesses on this machine: ``num_cpus // cpus`` at a time, and no more than
+    the GPUs allow (``gpus`` per block, a share 1/n of one lets n blocks train on each GPU at once)."""
+
+    def __init__(self, num_cpus: int, cpus: int, gpus: float, gpu_count: Optional[int] = None) -> None:
         import queue
         from concurrent.futures import ThreadPoolExecutor
 
-        if gpus != int(gpus):
-            raise TrainBlocksError("--executor local: --gpus-per-block must be a whole number (fractions need --executor ray)")
         slots = max(1, num_cpus // cpus)
-        gpu_ids: List[int] = []
+        devices: List[str] = []
         if gpus > 0:
-            import torch
+            if gpu_count is None:
+                import torch
 
-            count = torch.cuda.device_count()
-            if count < gpus:
-                raise TrainBlocksError(f"--gpus-per-block {gpus:g}: this machine has {count} GPU(s)")
-            slots = min(slots, count // int(gpus))
-            gpu_ids = list(range(count))
+                gpu_count = torch.cuda.device_count()
+            devices = local_gpu_slots(gpus, gpu_count)
+            slots = min(slots, len(devices))
         self.slots = slots
+        self.devices: List[Optional[str]] = list(devices[:slots]) if devices else [None] * slots
+        """Each slot's ``CUDA_VISIBLE_DEVICES`` (None: left as it is, CPU blocks)."""
         self._free: "queue.Queue[Optional[str]]" = queue.Queue()
-        for slot in range(slots):
-            ids = gpu_ids[slot * int(gpus):(slot + 1) * int(gpus)]
-            self._free.put(",".join(map(str, ids)) if ids else None)
+        for device in self.devices:
+            self._free.put(device)
         self._pool = ThreadPoolExecutor(max_workers=slots)
-        self.description = f"local pool of {slots} at a time"
+        shared = f", {round(1 / gpus)} blocks per GPU" if 0 < gpus < 1 else ""
+        self.description = f"local pool of {slots} at a time{shared}"
 
     def _run(self, job: AttemptJob) -> AttemptResult:
         devices = self._free.get()

@@ -108,7 +108,7 @@ def train_pending(resources: Resources, global_run: GlobalRun, states: Dict[int,
             state.status = "running"
             job = AttemptJob(state.block, attempt_number(attempt_dir), str(attempt_dir),
                              block_command(global_run, state.block, attempt_dir, gpus, block_steps, extra),
-                             thread_env(cpus, gpus))
+                             thread_env(cpus, gpus), cwd=os.getcwd())
             inflight[executor.submit(job)] = (state, attempt_dir)
             print(f"block {state.block}: attempt {state.attempts} of {max_retries + 1} in {attempt_dir}", flush=True)
 
