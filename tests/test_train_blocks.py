@@ -26,7 +26,14 @@ from scalar_nerfstudio.runs import latest_checkpoint_step
 from scalar_nerfstudio.distributed import TrainBlocksError
 from scalar_nerfstudio.distributed.executors import LocalExecutor, local_gpu_slots, thread_env
 from scalar_nerfstudio.distributed.run_folders import DONE_MARKER, GlobalRun, prepare_blocks, write_done
-from scalar_nerfstudio.distributed.scheduling import block_command, default_cpus_per_block
+from scalar_nerfstudio.distributed import executors, scheduling
+from scalar_nerfstudio.distributed.scheduling import (
+    Resources,
+    block_command,
+    default_cpus_per_block,
+    default_local_gpus_per_block,
+    start_executor,
+)
 from scalar_nerfstudio.scripts import train_blocks
 from scalar_nerfstudio.scripts.train_blocks import main
 
@@ -117,6 +124,35 @@ def test_local_blocks_share_a_gpu_when_asked() -> None:
     for gpus, count, message in ((0.3, 1, "1/n"), (1.5, 2, "whole number"), (2, 1, "has 1 GPU"), (0.5, 0, "no GPU")):
         with pytest.raises(TrainBlocksError, match=message):
             LocalExecutor(16, 1, gpus, gpu_count=count)
+
+
+def test_by_default_local_blocks_share_the_gpus(monkeypatch) -> None:
+    """Without --gpus-per-block, --executor local trains the blocks of a GPU machine at once, up to 8
+    on each GPU (one block alone leaves a GPU mostly idle), and on the CPU without a GPU."""
+    assert default_local_gpus_per_block(1, 8) == 1 / 8
+    assert default_local_gpus_per_block(1, 20) == 1 / 8  # at most 8 share one GPU
+    assert default_local_gpus_per_block(2, 8) == 1 / 4
+    assert default_local_gpus_per_block(4, 2) == 1.0
+    assert default_local_gpus_per_block(0, 8) == 0.0
+    assert local_gpu_slots(default_local_gpus_per_block(1, 3), 1) == ["0"] * 3
+    monkeypatch.setattr(scheduling, "local_gpu_count", lambda: 1)
+    monkeypatch.setattr(executors, "local_gpu_count", lambda: 1)
+    executor, cpus, gpus = start_executor(Resources(num_cpus=16), 8)
+    try:
+        assert (cpus, gpus, executor.slots, executor.devices) == (2, 1 / 8, 8, ["0"] * 8)
+    finally:
+        executor.close()
+    executor, cpus, gpus = start_executor(Resources(num_cpus=16, gpus_per_block=1), 8)  # asked: one at a time
+    try:
+        assert (gpus, executor.slots) == (1, 1)
+    finally:
+        executor.close()
+    monkeypatch.setattr(scheduling, "local_gpu_count", lambda: 0)
+    executor, cpus, gpus = start_executor(Resources(num_cpus=2), 8)
+    try:
+        assert (cpus, gpus, executor.slots, executor.devices) == (1, 0.0, 2, [None, None])
+    finally:
+        executor.close()
     run = GlobalRun(Path("/runs/g"), 2, Path("/runs/g/nerfstudio_models/step-000000039.ckpt"), 15)
     command = block_command(run, 1, Path("/o/block1/attempt-3"), 0, None, ["--steps-per-save", "4"])
     assert command[:5] == ["scalar-nerf-block", "--global-run", "/runs/g", "--block", "1"]

@@ -119,11 +119,11 @@ def require_ray() -> None:
         raise TrainBlocksError(f"--executor ray needs Ray, which is not installed: {INSTALL_RAY}") from None
 
 
-def local_gpus_available() -> bool:
-    """Whether this machine has a CUDA GPU (imports torch: only the command's own process asks)."""
+def local_gpu_count() -> int:
+    """How many CUDA GPUs this machine has (imports torch: only the command's own process asks)."""
     import torch
 
-    return torch.cuda.is_available()
+    return torch.cuda.device_count() if torch.cuda.is_available() else 0
 
 
 def local_gpu_slots(gpus: float, gpu_count: int) -> List[str]:
@@ -163,9 +163,7 @@ class LocalExecutor:
         devices: List[str] = []
         if gpus > 0:
             if gpu_count is None:
-                import torch
-
-                gpu_count = torch.cuda.device_count()
+                gpu_count = local_gpu_count()
             devices = local_gpu_slots(gpus, gpu_count)
             slots = min(slots, len(devices))
         self.slots = slots
