@@ -128,14 +128,18 @@ def test_local_blocks_share_a_gpu_when_asked() -> None:
 
 def test_by_default_local_blocks_share_the_gpus(monkeypatch) -> None:
     """Without --gpus-per-block, --executor local trains the blocks of a GPU machine at once, up to 8
-    on each GPU (one block alone leaves a GPU mostly idle), and on the CPU without a GPU."""
-    assert default_local_gpus_per_block(1, 8) == 1 / 8
-    assert default_local_gpus_per_block(1, 20) == 1 / 8  # at most 8 share one GPU
-    assert default_local_gpus_per_block(2, 8) == 1 / 4
-    assert default_local_gpus_per_block(4, 2) == 1.0
-    assert default_local_gpus_per_block(0, 8) == 0.0
-    assert local_gpu_slots(default_local_gpus_per_block(1, 3), 1) == ["0"] * 3
-    monkeypatch.setattr(scheduling, "local_gpu_count", lambda: 1)
+    on each GPU and 2 GiB of its memory per block (one block alone leaves a GPU mostly idle), and on
+    the CPU without a GPU."""
+    gib = 1024**3
+    assert default_local_gpus_per_block([80 * gib], 8) == 1 / 8
+    assert default_local_gpus_per_block([80 * gib], 20) == 1 / 8  # at most 8 share one GPU
+    assert default_local_gpus_per_block([80 * gib, 80 * gib], 8) == 1 / 4
+    assert default_local_gpus_per_block([8 * gib], 8) == 1 / 4  # 2 GiB per block
+    assert default_local_gpus_per_block([80 * gib, 3 * gib], 8) == 1.0  # the smallest GPU decides
+    assert default_local_gpus_per_block([80 * gib] * 4, 2) == 1.0
+    assert default_local_gpus_per_block([], 8) == 0.0
+    assert local_gpu_slots(default_local_gpus_per_block([80 * gib], 3), 1) == ["0"] * 3
+    monkeypatch.setattr(scheduling, "local_gpu_memory_bytes", lambda: [80 * gib])
     monkeypatch.setattr(executors, "local_gpu_count", lambda: 1)
     executor, cpus, gpus = start_executor(Resources(num_cpus=16), 8)
     try:
@@ -147,7 +151,7 @@ def test_by_default_local_blocks_share_the_gpus(monkeypatch) -> None:
         assert (gpus, executor.slots) == (1, 1)
     finally:
         executor.close()
-    monkeypatch.setattr(scheduling, "local_gpu_count", lambda: 0)
+    monkeypatch.setattr(scheduling, "local_gpu_memory_bytes", lambda: [])
     executor, cpus, gpus = start_executor(Resources(num_cpus=2), 8)
     try:
         assert (cpus, gpus, executor.slots, executor.devices) == (1, 0.0, 2, [None, None])

@@ -126,6 +126,13 @@ def local_gpu_count() -> int:
     return torch.cuda.device_count() if torch.cuda.is_available() else 0
 
 
+def local_gpu_memory_bytes() -> List[int]:
+    """Each CUDA GPU's total memory in bytes, from its device properties."""
+    import torch
+
+    return [int(torch.cuda.get_device_properties(i).total_memory) for i in range(local_gpu_count())]
+
+
 def local_gpu_slots(gpus: float, gpu_count: int) -> List[str]:
     """The ``CUDA_VISIBLE_DEVICES`` of each block slot on a machine with ``gpu_count`` GPUs when each
     block gets ``gpus`` of them: whole GPUs (``gpus`` >= 1, a whole number) or a share of one

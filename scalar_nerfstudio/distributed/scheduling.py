@@ -18,7 +18,7 @@ from scalar_nerfstudio.distributed.executors import (
     AttemptJob,
     LocalExecutor,
     RayExecutor,
-    local_gpu_count,
+    local_gpu_memory_bytes,
     thread_env,
 )
 from scalar_nerfstudio.distributed.run_folders import (
@@ -36,20 +36,25 @@ Executor = Union[LocalExecutor, RayExecutor]
 
 MAX_BLOCKS_PER_GPU = 8
 """The most blocks ``--executor local`` trains on one GPU at once by default."""
+GPU_BYTES_PER_SHARED_BLOCK = 2 * 1024**3
+"""GPU memory counted per block when blocks share a GPU by default: a block of the 3 x 3 town
+(4096 rays per step) used about 1.4 GB with 8 sharing an H200 (docs/benchmarks.md, section 9)."""
 
 
-def default_local_gpus_per_block(gpu_count: int, num_blocks: int) -> float:
-    """GPUs per block when ``--gpus-per-block`` is not given and ``--executor local`` runs on
-    ``gpu_count`` GPUs: the blocks spread over them, up to :data:`MAX_BLOCKS_PER_GPU` sharing one
-    (a share 1/n), 0 (the CPU) without a GPU.
+def default_local_gpus_per_block(gpu_memory_bytes: List[int], num_blocks: int) -> float:
+    """GPUs per block when ``--gpus-per-block`` is not given and ``--executor local`` runs on GPUs
+    of ``gpu_memory_bytes`` (each one's total): the blocks spread over them, up to
+    :data:`MAX_BLOCKS_PER_GPU` sharing one and no more than the smallest GPU holds at
+    :data:`GPU_BYTES_PER_SHARED_BLOCK` each (a share 1/n); 0 (the CPU) without a GPU.
 
     One block process keeps a GPU far from busy: on one H200, 8 blocks of the 3 x 3 town sharing it
     finished 1000 steps each in 104 s, against 54.5 s for one block alone, so 436 s one after
     another (docs/benchmarks.md, section 9).
     """
-    if gpu_count <= 0:
+    if not gpu_memory_bytes:
         return 0.0
-    per_gpu = min(MAX_BLOCKS_PER_GPU, max(1, -(-num_blocks // gpu_count)))
+    fits = max(1, min(gpu_memory_bytes) // GPU_BYTES_PER_SHARED_BLOCK)
+    per_gpu = min(MAX_BLOCKS_PER_GPU, fits, max(1, -(-num_blocks // len(gpu_memory_bytes))))
     return 1.0 / per_gpu
 
 
@@ -97,13 +102,13 @@ def start_executor(resources: Resources, num_blocks: int) -> Tuple[Executor, int
             executor = RayExecutor(resources.address, local_cpus if resources.address is None else None)
             total_cpus, node_cpus, has_gpus = executor.total_cpus, executor.node_cpus, executor.total_gpus > 0
         else:
-            gpu_count = local_gpu_count()
-            total_cpus, node_cpus, has_gpus = local_cpus, local_cpus, gpu_count > 0
+            gpu_memory = local_gpu_memory_bytes()
+            total_cpus, node_cpus, has_gpus = local_cpus, local_cpus, bool(gpu_memory)
         cpus = resources.cpus_per_block or default_cpus_per_block(total_cpus, num_blocks, node_cpus)
         if resources.gpus_per_block is not None:
             gpus = resources.gpus_per_block
         elif executor is None:
-            gpus = default_local_gpus_per_block(gpu_count, num_blocks)
+            gpus = default_local_gpus_per_block(gpu_memory, num_blocks)
         else:
             gpus = 1.0 if has_gpus else 0.0
         if executor is None:

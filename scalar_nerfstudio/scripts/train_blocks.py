@@ -66,9 +66,9 @@ class TrainBlocksArgs:
     gpus_per_block: Optional[float] = None
     """GPUs per block. A share 1/n of one (0.5, 0.25, 0.125) trains n blocks on each GPU at once; Ray
     accepts any fraction. Default without a GPU: 0 (train on the CPU). Default with GPUs: --executor
-    local spreads the blocks over them, up to 8 sharing one GPU (one block alone leaves a GPU mostly
-    idle; give 1 for one block per GPU at a time, e.g. when 8 do not fit in its memory); Ray gives each
-    block 1."""
+    local spreads the blocks over them, up to 8 sharing one GPU and 2 GiB of its memory per block (one
+    block alone leaves a GPU mostly idle; give 1 for one block per GPU at a time, e.g. when the shared
+    blocks run out of GPU memory); Ray gives each block 1."""
     max_retries: int = 2
     """Attempts after the first for a block that fails (each in a fresh folder)."""
     output_dir: Optional[Path] = None
