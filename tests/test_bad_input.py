@@ -723,3 +723,13 @@ def test_grayscale_and_rgba_scene_trains(mixed_scene: Path, tmp_path: Path) -> N
     (run,) = run_dirs(outputs)
     assert (run / "nerfstudio_models").is_dir()
     assert sorted(str(p.relative_to(mixed_scene)) for p in mixed_scene.rglob("*")) == before  # the scene folder is untouched
+
+
+def test_a_missing_relative_scene_names_where_it_was_looked_for(tmp_path: Path, monkeypatch) -> None:
+    """A relative --data that does not exist names the directory it was looked for from (a run's
+    config keeps the path as typed, so a command started elsewhere looks in the wrong place)."""
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SceneError, match=f"scene folder scenes/town does not exist \\(a relative path, looked for from {tmp_path}"):
+        scan_scene(Path("scenes/town"), eval_interval=8)
+    with pytest.raises(SceneError, match=f"scene folder {tmp_path / 'town'} does not exist\\.$"):
+        scan_scene(tmp_path / "town", eval_interval=8)

@@ -142,7 +142,8 @@ def _transforms_path(data: Path) -> Path:
     if data.suffix == ".json":
         return data
     if not data.exists():
-        raise SceneError(f"The scene folder {data} does not exist.")
+        where = "" if data.is_absolute() else f" (a relative path, looked for from {Path.cwd()}: run from the directory it was given in)"
+        raise SceneError(f"The scene folder {data} does not exist{where}.")
     if data.is_dir() and not any(data.iterdir()):
         raise SceneError(f"The scene folder {data} is empty: it needs a transforms.json and the images it lists.")
     return data / "transforms.json"
