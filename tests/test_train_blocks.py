@@ -91,6 +91,9 @@ def test_clear_errors(fake_global_run: Path, tmp_path: Path, capsys, monkeypatch
     assert "global phase" in err and "not finished" in err
     err = _error(capsys, [str(fake_global_run), "--", "--pipeline.block-steps", "3"])
     assert "--block-steps" in err
+    assert "must be 1/n" in _error(capsys, [str(fake_global_run), "--gpus-per-block", "0.3"])
+    if not torch.cuda.is_available():
+        assert "this machine has no GPU" in _error(capsys, [str(fake_global_run), "--gpus-per-block", "0.5"])
     monkeypatch.setitem(sys.modules, "ray", None)  # as if Ray were not installed
     assert "pip install 'scalar-nerfstudio[distributed]'" in _error(capsys, [str(fake_global_run), "--executor", "ray"])
     assert not (tmp_path / "out" / "scene" / "scalar-nerf" / "fake-blocks").exists(), "nothing is written on an error"

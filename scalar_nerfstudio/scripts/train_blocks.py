@@ -27,7 +27,7 @@ from typing import Annotated, Dict, List, Literal, Optional, Tuple
 import tyro
 
 from scalar_nerfstudio.distributed import COMMAND, TrainBlocksError
-from scalar_nerfstudio.distributed.executors import require_ray
+from scalar_nerfstudio.distributed.executors import local_gpu_count, local_gpu_slots, require_ray
 from scalar_nerfstudio.distributed.run_folders import (
     BlockState,
     check_global_run,
@@ -95,6 +95,8 @@ def check_args(args: TrainBlocksArgs, extra: List[str]) -> None:
             raise TrainBlocksError(f"set the steps per block with --block-steps, not {flag} after --")
     if args.executor == "local" and args.address is not None:
         raise TrainBlocksError("--address is for --executor ray")
+    if args.executor == "local" and args.gpus_per_block:
+        local_gpu_slots(args.gpus_per_block, local_gpu_count())  # a share that is not 1/n, or GPUs this machine lacks
     if args.executor == "ray":
         require_ray()
 
