@@ -11,11 +11,13 @@
 #      nerfacto unless NERFACTO=0, all with nerfstudio's mixed precision
 #      (benchmarks/bench_training.py --device cuda);
 #   4. the quick test subset with the GPU visible, so that every `ns-train` a test starts (device
-#      "auto") trains on CUDA: the whole method (global model, blocks, fusion, eval, export) there.
+#      "auto") trains on CUDA: the whole method (global model, blocks, fusion, eval, export) there;
+#   5. `scalar-nerf-train-blocks` with its default GPU share (no --gpus-per-block): a small global
+#      run on a generated courtyard, then its 4 blocks, which must train at once on the GPU.
 # Logs and the benchmark's JSON go to $OUT (or outputs/cuda-check). Needs the project installed
 # (tools/setup-tests.sh) and ../shared/data beside the checkout (SCALAR_CHECK_DATA names another scene).
 #
-#     bash tools/cuda-check.sh            # at most 150 + 60 + 2 x 240 + 300 s (UNIT_S, KERNEL_S, BENCH_S, SUITE_S)
+#     bash tools/cuda-check.sh            # at most 150 + 60 + 2 x 240 + 300 + 240 s (UNIT_S, KERNEL_S, BENCH_S, SUITE_S, BLOCKS_S)
 #     STAGES="1 2 3" bash tools/cuda-check.sh   # some stages only (a device call is limited to 10 minutes)
 #
 # Stage 4 runs the tests in parallel when pytest-xdist is installed (one thread each, so that the
@@ -31,7 +33,7 @@ mkdir -p "$out"
 export PYTHONUNBUFFERED=1
 data=${SCALAR_CHECK_DATA:-../shared/data/castle-P30}
 stage() { echo; echo "=== $(date +%H:%M:%S) $*"; }
-wanted() { [[ " ${STAGES:-1 2 3 4} " == *" $1 "* ]]; }
+wanted() { [[ " ${STAGES:-1 2 3 4 5} " == *" $1 "* ]]; }
 
 stage "machine"
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv 2>&1 | tee "$out/gpu.txt"
@@ -73,5 +75,19 @@ fi
 timeout "${SUITE_S:-300}" python -m pytest -v -p no:cacheprovider -m "not slow" "${parallel[@]}" --maxfail 3 --tb short -rfEs \
     > "$out/suite.log" 2>&1
 grep -E "FAILED|ERROR|passed|failed|^E " "$out/suite.log" | tail -60
+fi
+if wanted 5; then
+stage "5. train-blocks: the blocks share the GPU by default"
+work=/tmp/cuda-check-blocks
+rm -rf "$work"
+timeout "${BLOCKS_S:-240}" bash -c '
+    set -euo pipefail
+    scalar-nerf-make-scene --scene courtyard --output "$1/scene" --num-images 40 --quiet
+    python -m nerfstudio.scripts.train scalar-nerf --data "$1/scene" --output-dir "$1/runs" --vis tensorboard \
+        --pipeline.num-blocks 4 --pipeline.global-steps 300 --pipeline.train-blocks False > "$1/global.log" 2>&1
+    run=$(dirname "$(find "$1/runs" -name config.yml | head -1)")
+    scalar-nerf-train-blocks "$run" --block-steps 300 --output-dir "$1/blocks"
+' _ "$work" 2>&1 | grep -v "Warning\|warn\|@custom" | tee "$out/blocks_shared.log" | grep -E "local pool|done in|failed|assembled|Error|error" \
+    || echo "stage 5 failed: see $out/blocks_shared.log and $work/global.log"
 fi
 stage "done"
