@@ -4,7 +4,7 @@
 #   - one model with a 2^T, a 2^(T+2) and a 2^(T+4) table, STEPS steps each (the benchmark's
 #     one-model runs: its runner, its specs);
 #   - the global phase (GLOBAL_STEPS steps, 2^T, automatic K), then its blocks trained at once by
-#     `scalar-nerf-train-blocks --gpus-per-block 1/K` (STEPS - GLOBAL_STEPS steps each: the equal
+#     `scalar-nerf-train-blocks --gpus-per-block 1/BLOCKS_PER_GPU` (8 by default; STEPS - GLOBAL_STEPS steps each: the equal
 #     wall-clock budget on K workers, counted in steps), then `scalar-nerf-eval-fusion` on the
 #     assembled run.
 # Held-out views: every 8th image, as in the benchmark. Results go to $OUT (seven files: each run's
