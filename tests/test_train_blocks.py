@@ -23,10 +23,9 @@ import yaml
 from conftest import TINY, ns_eval, ns_train_command, run_dirs, trained_block_tensors
 from scalar_nerfstudio.blocks.split import save_blocks_json, split_cameras
 from scalar_nerfstudio.runs import latest_checkpoint_step
-from scalar_nerfstudio.distributed import TrainBlocksError
+from scalar_nerfstudio.distributed import TrainBlocksError, executors, scheduling
 from scalar_nerfstudio.distributed.executors import LocalExecutor, local_gpu_slots, thread_env
 from scalar_nerfstudio.distributed.run_folders import DONE_MARKER, GlobalRun, prepare_blocks, write_done
-from scalar_nerfstudio.distributed import executors, scheduling
 from scalar_nerfstudio.distributed.scheduling import (
     Resources,
     block_command,
@@ -110,6 +109,13 @@ def test_threads_and_pool_size_do_not_oversubscribe() -> None:
     assert LocalExecutor(2, 1, 0).slots == 2
     assert LocalExecutor(2, 2, 0).slots == 1
     assert LocalExecutor(8, 3, 0).slots == 2
+    run = GlobalRun(Path("/runs/g"), 2, Path("/runs/g/nerfstudio_models/step-000000039.ckpt"), 15)
+    command = block_command(run, 1, Path("/o/block1/attempt-3"), 0, None, ["--steps-per-save", "4"])
+    assert command[:5] == ["scalar-nerf-block", "--global-run", "/runs/g", "--block", "1"]
+    assert command[command.index("--pipeline.block-steps") + 1] == "15" and command[command.index("--max-num-iterations") + 1] == "15"
+    assert "--machine.device-type" in command and command[-2:] == ["--steps-per-save", "4"]
+    command = block_command(run, 1, Path("/o"), 1, 6, [])
+    assert command[command.index("--pipeline.block-steps") + 1] == "6" and "--machine.device-type" not in command
 
 
 def test_local_blocks_share_a_gpu_when_asked() -> None:
@@ -160,13 +166,7 @@ def test_by_default_local_blocks_share_the_gpus(monkeypatch) -> None:
         assert (cpus, gpus, executor.slots, executor.devices) == (1, 0.0, 2, [None, None])
     finally:
         executor.close()
-    run = GlobalRun(Path("/runs/g"), 2, Path("/runs/g/nerfstudio_models/step-000000039.ckpt"), 15)
-    command = block_command(run, 1, Path("/o/block1/attempt-3"), 0, None, ["--steps-per-save", "4"])
-    assert command[:5] == ["scalar-nerf-block", "--global-run", "/runs/g", "--block", "1"]
-    assert command[command.index("--pipeline.block-steps") + 1] == "15" and command[command.index("--max-num-iterations") + 1] == "15"
-    assert "--machine.device-type" in command and command[-2:] == ["--steps-per-save", "4"]
-    command = block_command(run, 1, Path("/o"), 1, 6, [])
-    assert command[command.index("--pipeline.block-steps") + 1] == "6" and "--machine.device-type" not in command
+
 
 
 def test_skip_done_set_aside_leftovers_and_stale(tmp_path: Path, capsys) -> None:
