@@ -23,7 +23,7 @@ import yaml
 from conftest import TINY, ns_eval, ns_train_command, run_dirs, trained_block_tensors
 from scalar_nerfstudio.blocks.split import save_blocks_json, split_cameras
 from scalar_nerfstudio.runs import latest_checkpoint_step
-from scalar_nerfstudio.distributed import TrainBlocksError, executors, scheduling
+from scalar_nerfstudio.distributed import TrainBlocksError, scheduling
 from scalar_nerfstudio.distributed.executors import LocalExecutor, local_gpu_slots, thread_env
 from scalar_nerfstudio.distributed.run_folders import DONE_MARKER, GlobalRun, prepare_blocks, write_done
 from scalar_nerfstudio.distributed.scheduling import (
@@ -149,7 +149,6 @@ def test_by_default_local_blocks_share_the_gpus(monkeypatch) -> None:
     assert default_local_gpus_per_block([], 8) == 0.0
     assert local_gpu_slots(default_local_gpus_per_block([80 * gib], 3), 1) == ["0"] * 3
     monkeypatch.setattr(scheduling, "local_gpu_memory_bytes", lambda: [80 * gib])
-    monkeypatch.setattr(executors, "local_gpu_count", lambda: 1)
     executor, cpus, gpus = start_executor(Resources(num_cpus=16), 8)
     try:
         assert (cpus, gpus, executor.slots, executor.devices) == (2, 1 / 8, 8, ["0"] * 8)

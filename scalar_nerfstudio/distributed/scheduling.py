@@ -100,23 +100,16 @@ def start_executor(resources: Resources, num_blocks: int) -> Tuple[Executor, int
     try:
         if resources.executor == "ray":
             executor = RayExecutor(resources.address, local_cpus if resources.address is None else None)
-            total_cpus, node_cpus, has_gpus = executor.total_cpus, executor.node_cpus, executor.total_gpus > 0
+            cpus = resources.cpus_per_block or default_cpus_per_block(executor.total_cpus, num_blocks, executor.node_cpus)
+            gpus = resources.gpus_per_block if resources.gpus_per_block is not None else (1.0 if executor.total_gpus > 0 else 0.0)
+            executor.configure(cpus, gpus)
         else:
             gpu_memory = local_gpu_memory_bytes()
-            total_cpus, node_cpus, has_gpus = local_cpus, local_cpus, bool(gpu_memory)
-        cpus = resources.cpus_per_block or default_cpus_per_block(total_cpus, num_blocks, node_cpus)
-        if resources.gpus_per_block is not None:
-            gpus = resources.gpus_per_block
-        elif executor is None:
-            gpus = default_local_gpus_per_block(gpu_memory, num_blocks)
-        else:
-            gpus = 1.0 if has_gpus else 0.0
-        if executor is None:
+            cpus = resources.cpus_per_block or default_cpus_per_block(local_cpus, num_blocks, local_cpus)
+            gpus = resources.gpus_per_block if resources.gpus_per_block is not None else default_local_gpus_per_block(gpu_memory, num_blocks)
             if cpus > local_cpus:
                 raise TrainBlocksError(f"--cpus-per-block {cpus}: this machine has {local_cpus} CPUs")
-            executor = LocalExecutor(local_cpus, cpus, gpus)
-        else:
-            executor.configure(cpus, gpus)
+            executor = LocalExecutor(local_cpus, cpus, gpus, gpu_count=len(gpu_memory))
     except BaseException:
         if executor is not None:
             executor.close()
