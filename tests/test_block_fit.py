@@ -10,6 +10,7 @@ import torch
 from conftest import tiny_trainer
 from scalar_nerfstudio.encodings import HashGridEncoding
 from scalar_nerfstudio.models.block_fit import fit_encoding, occupied_cell_sampler
+from scalar_nerfstudio.models.scalar_model import EVAL_BACKGROUND
 
 
 def _grid(seed: int, scale: float, log2_hashmap_size: int = 10) -> HashGridEncoding:
@@ -112,3 +113,28 @@ def test_fitted_blocks_need_the_global_decoder(scene: Path, tmp_path: Path) -> N
     with pytest.raises(SystemExit, match="bad option: --pipeline.block-init fitted with --pipeline.decoder-mode independent"):
         tiny_trainer(scene, tmp_path, block_init="fitted", decoder_mode="independent")
     assert not list(tmp_path.rglob("*.ckpt"))
+
+
+def test_fresh_block_learns_its_images_from_a_seeded_grid(scene: Path, tmp_path: Path) -> None:
+    """A fresh block (the paper's: an empty table of its own and the global decoder) starts with its
+    occupancy grid seeded from the global model's density and no warm-up. Its young field is nearly
+    transparent everywhere, so dropping samples for their own transparency from the first step left it
+    without a sample, and it ended as it started: the background colour on every pixel (the town at
+    2^8, 2026-11-27). Trained, it must render its own training images, not the background."""
+    run = tiny_trainer(scene, tmp_path, block_init="fresh", global_steps=150, block_steps=80)
+    assert run.pipeline.model.config.seed_block_occupancy  # the default this guards
+    run.train()
+    pipeline = run.pipeline
+    block = pipeline.model.resident_block(0)
+    block.eval()
+    dataset = pipeline.datamanager.train_dataset
+    block_errors, background_errors, coverage = [], [], []
+    for index in pipeline.split.blocks[0].image_indices[:3]:
+        with torch.no_grad():
+            outputs = block.get_outputs_for_camera(dataset.cameras[index : index + 1])
+        image = dataset[index]["image"][..., :3].to(outputs["rgb"].dtype)
+        block_errors.append(float(torch.mean((outputs["rgb"] - image) ** 2)))
+        background_errors.append(float(torch.mean((EVAL_BACKGROUND - image) ** 2)))
+        coverage.append(float(outputs["accumulation"].mean()))
+    assert min(coverage) > 0.5, coverage
+    assert sum(block_errors) < 0.3 * sum(background_errors), (block_errors, background_errors)

@@ -250,6 +250,43 @@ def test_a_block_grid_seeded_from_the_global_density_skips_empty_space_at_once()
     assert grid.pruning and torch.equal(grid.occupied, occupied_before)
 
 
+def test_a_fresh_field_in_a_seeded_grid_gets_samples_until_it_has_settled() -> None:
+    """A fresh block's field is nearly transparent where the global model (which seeded its grid) has
+    a surface. Dropping its samples for that transparency from its first step left it without a
+    sample, hence without a gradient, for good (the town at 2^8, 2026-11-27). For the grid's warm-up
+    length it evaluates every sample in an occupied cell; after it, transparent samples are dropped
+    as in any trained model."""
+    from conftest import ray_bundle, small_scalar_model
+
+    from scalar_nerfstudio.fields.scalar_field import unit_cube_to_world
+    from scalar_nerfstudio.models.scalar_model import ScalarModel
+
+    ball = torch.tensor([0.5, 0.0, 0.0])
+    global_model = small_scalar_model()
+
+    def ball_density(unit: torch.Tensor, encoding=None):  # a ball of radius 0.1 at x = 0.5, empty elsewhere
+        inside = torch.linalg.vector_norm(unit_cube_to_world(unit) - ball, dim=-1) < 0.1
+        return 400.0 * inside.float(), torch.zeros(unit.shape[0], 15)
+
+    global_model.field.density_at_unit = ball_density
+    block = ScalarModel(config=global_model.config, scene_box=global_model.scene_box, num_train_data=2,
+                        region_centre=(0.4, 0.0, 0.0), region_radius=0.3)
+    block.field.decoder.density_bias = -12.0  # nearly transparent everywhere: alpha far below the threshold
+    block.seed_occupancy_from(global_model)
+    assert block.occupancy.pruning
+    rays = ray_bundle(torch.tensor([[0.0, 0.0, 0.0]] * 4), torch.tensor([[1.0, 0.0, 0.0]] * 4))
+    block.train()
+    for step in (0, block.config.occupancy_warmup_steps - 1):
+        block.update_occupancy(step)
+        outputs = block.render_rays(rays)
+        assert (outputs["samples_per_ray"] > 0).all(), step  # samples in the ball's cells are evaluated ...
+        outputs["rgb"].sum().backward()
+        assert block.field.encoder.table.grad.abs().sum() > 0  # ... so the fresh table learns
+        block.zero_grad()
+    block.update_occupancy(block.config.occupancy_warmup_steps)
+    assert (block.render_rays(rays)["samples_per_ray"] == 0).all()  # settled: transparent samples are skipped
+
+
 def test_global_rule_with_one_block_per_ray_is_the_surface_rule() -> None:
     rays = _rays()
     with torch.no_grad():

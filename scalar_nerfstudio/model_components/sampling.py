@@ -168,6 +168,7 @@ class OccupancyGrid(nn.Module):
         # (checkpoints of older runs load): a resumed grid keeps its saved cells through a warm-up.
         self.register_buffer("seeded", torch.zeros((), dtype=torch.bool), persistent=False)
         self._warming_up = True
+        self._settles = False  # see seed(settle=True)
         # caches keyed by the tensors' identity and version (in-place writes and swapped storage renew them)
         self._neighbourhood: tuple[tuple[int, int, torch.device], Tensor] | None = None  # see neighbourhood_estimates
         self._pruning: tuple[tuple[int, int, torch.device], bool] | None = None  # see pruning
@@ -177,6 +178,14 @@ class OccupancyGrid(nn.Module):
         """Whether the step of the latest :meth:`update` call is inside the warm-up (True before the
         first call; always False for a seeded grid, see :meth:`seed`)."""
         return self._warming_up and not bool(self.seeded)
+
+    @property
+    def settling(self) -> bool:
+        """Whether the grid was seeded from another model's density (``seed(..., settle=True)``) and
+        the step of the latest :meth:`update` is still inside ``warmup_steps``: its own field is young,
+        so its model evaluates every sample in an occupied cell however transparent the field finds
+        it (else a nearly transparent fresh field would get no sample, hence no gradient, for good)."""
+        return self._settles and self._warming_up
 
     @staticmethod
     def _world_cell_sizes(resolution: int) -> Tensor:
@@ -192,10 +201,14 @@ class OccupancyGrid(nn.Module):
         return (cell_coordinates(torch.arange(g**3, device=self.density_ema.device), g) + 0.5) / g
 
     @torch.no_grad()
-    def seed(self, densities: Tensor) -> None:
+    def seed(self, densities: Tensor, settle: bool = False) -> None:
         """Start from known densities ``[G^3]`` (1 / world unit) at :meth:`cell_centres` instead of a
         warm-up: cells are marked at once and later updates are partial, as after the warm-up. The
-        estimates decay as the model's own densities come in."""
+        estimates decay as the model's own densities come in.
+
+        ``settle``: the densities are another model's (a fresh block's grid seeded from the global
+        model), so this grid's own field has not learnt the scene yet: :attr:`settling` holds until
+        an :meth:`update` at or past ``warmup_steps``."""
         if densities.shape != self.density_ema.shape:
             raise ValueError(f"seed densities must have shape {list(self.density_ema.shape)}, got {list(densities.shape)}")
         self.density_ema.copy_(torch.nan_to_num(densities.float(), nan=0.0, posinf=1e6).clamp_min(0.0))
@@ -203,6 +216,7 @@ class OccupancyGrid(nn.Module):
         opacities = 1.0 - torch.exp(-(self.density_ema * self.cell_sizes).clamp(max=50.0))
         self.occupied.copy_(opacities > min(self.opacity_threshold, float(opacities.mean())))
         self.seeded.fill_(True)
+        self._settles = settle
 
     @torch.no_grad()
     def refresh(self, density_fn: Callable[[Tensor], Tensor], chunk_cells: int = 1 << 18) -> None:

@@ -399,9 +399,11 @@ class ScalarModel(NormalsOutput, Model):
     @torch.no_grad()
     def seed_occupancy_from(self, other: "ScalarModel") -> None:
         """Mark this model's occupancy grid from ``other``'s density (a block from the global model):
-        each cell centre is taken to the world, then into ``other``'s frame; no warm-up follows."""
+        each cell centre is taken to the world, then into ``other``'s frame; no warm-up follows, but
+        for the warm-up's length this model's own transparency drops no sample (its field settles,
+        :attr:`OccupancyGrid.settling`)."""
         world = self.unit_cube_to_world(self.occupancy.cell_centres())
-        self.occupancy.seed(other._density_no_grad(other.world_to_unit_cube(world)))
+        self.occupancy.seed(other._density_no_grad(other.world_to_unit_cube(world)), settle=True)
 
     def world_to_unit_cube(self, positions: Tensor) -> Tensor:
         """[N, 3] world positions -> [N, 3] contracted unit-cube positions of this model's frame (what its field reads)."""
@@ -626,8 +628,11 @@ class ScalarModel(NormalsOutput, Model):
 
     def _skips_transparent_samples(self) -> bool:
         """Whether samples more transparent than ``alpha_threshold`` are dropped now: once the
-        occupancy grid marks cells empty (after its warm-up), unless the threshold is 0."""
-        return self.config.alpha_threshold > 0 and self.samples_grid().pruning
+        occupancy grid marks cells empty (after its warm-up), unless the threshold is 0, and not
+        while this model's field settles into a grid seeded from another model's
+        (:attr:`OccupancyGrid.settling`)."""
+        grid = self.samples_grid()
+        return self.config.alpha_threshold > 0 and grid.pruning and not grid.settling
 
     @torch.no_grad()
     def _worth_evaluating(self, unit_positions: Tensor, deltas: Tensor) -> Tensor:
