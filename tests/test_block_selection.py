@@ -222,22 +222,35 @@ def test_unit_cube_to_world_inverts_the_contraction() -> None:
     assert torch.isfinite(corners).all()
 
 
-def test_a_block_grid_seeded_from_the_global_density_skips_empty_space_at_once() -> None:
+BALL_CENTRE = (0.5, 0.0, 0.0)
+
+
+def _ball_global_model_and_fresh_block():
+    """A global model whose density is a ball of radius 0.1 at :data:`BALL_CENTRE` (400 inside, empty
+    elsewhere), and a fresh block around it (centre x = 0.4, radius 0.3), its grid not seeded yet."""
     from conftest import small_scalar_model
 
-    from scalar_nerfstudio.fields.scalar_field import contract_to_unit_cube, unit_cube_to_world
+    from scalar_nerfstudio.fields.scalar_field import unit_cube_to_world
     from scalar_nerfstudio.models.scalar_model import ScalarModel
 
-    ball = torch.tensor([0.5, 0.0, 0.0])
+    ball = torch.tensor(BALL_CENTRE)
     global_model = small_scalar_model()
 
-    def ball_density(unit: torch.Tensor, encoding=None):  # a ball of radius 0.1 at x = 0.5, empty elsewhere
+    def ball_density(unit: torch.Tensor, encoding=None):
         inside = torch.linalg.vector_norm(unit_cube_to_world(unit) - ball, dim=-1) < 0.1
         return 400.0 * inside.float(), torch.zeros(unit.shape[0], 15)
 
     global_model.field.density_at_unit = ball_density
     block = ScalarModel(config=global_model.config, scene_box=global_model.scene_box, num_train_data=2,
                         region_centre=(0.4, 0.0, 0.0), region_radius=0.3)
+    return global_model, block
+
+
+def test_a_block_grid_seeded_from_the_global_density_skips_empty_space_at_once() -> None:
+    from scalar_nerfstudio.fields.scalar_field import contract_to_unit_cube
+
+    global_model, block = _ball_global_model_and_fresh_block()
+    ball = torch.tensor(BALL_CENTRE)
     assert not block.occupancy.pruning
     block.seed_occupancy_from(global_model)
     grid = block.occupancy
@@ -256,21 +269,7 @@ def test_a_fresh_field_in_a_seeded_grid_gets_samples_until_it_has_settled() -> N
     sample, hence without a gradient, for good (the town at 2^8, 2026-11-27). For the grid's warm-up
     length it evaluates every sample in an occupied cell; after it, transparent samples are dropped
     as in any trained model."""
-    from conftest import ray_bundle, small_scalar_model
-
-    from scalar_nerfstudio.fields.scalar_field import unit_cube_to_world
-    from scalar_nerfstudio.models.scalar_model import ScalarModel
-
-    ball = torch.tensor([0.5, 0.0, 0.0])
-    global_model = small_scalar_model()
-
-    def ball_density(unit: torch.Tensor, encoding=None):  # a ball of radius 0.1 at x = 0.5, empty elsewhere
-        inside = torch.linalg.vector_norm(unit_cube_to_world(unit) - ball, dim=-1) < 0.1
-        return 400.0 * inside.float(), torch.zeros(unit.shape[0], 15)
-
-    global_model.field.density_at_unit = ball_density
-    block = ScalarModel(config=global_model.config, scene_box=global_model.scene_box, num_train_data=2,
-                        region_centre=(0.4, 0.0, 0.0), region_radius=0.3)
+    global_model, block = _ball_global_model_and_fresh_block()
     block.field.decoder.density_bias = -12.0  # nearly transparent everywhere: alpha far below the threshold
     block.seed_occupancy_from(global_model)
     assert block.occupancy.pruning
