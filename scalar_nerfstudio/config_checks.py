@@ -160,6 +160,9 @@ def _check_model(model: Any) -> None:
         gamma = getattr(model, name, None)
         if gamma is not None and (isinstance(gamma, bool) or not isinstance(gamma, (int, float)) or not (math.isfinite(gamma) and gamma >= 0)):
             raise OptionError(f"{_flag(name, prefix)} {_show(gamma)}: must be a finite number >= 0 (0: equal weights).")
+    guard = getattr(model, "guard_accumulation", None)
+    if guard is not None and (isinstance(guard, bool) or not isinstance(guard, (int, float)) or not (math.isfinite(guard) and 0 < guard <= 1)):
+        raise OptionError(f"{_flag('guard_accumulation', prefix)} {_show(guard)}: must be a number in (0, 1] (an accumulated opacity).")
     _at_least(model, "block_fit_steps", 0, " (0: a fitted block keeps its fresh table)", prefix=prefix, optional=True)
     _at_least(model, "block_fit_points", 1, prefix=prefix, optional=True)
     near, far = getattr(model, "near_plane", 0.0), getattr(model, "far_plane", 1.0)

@@ -18,6 +18,9 @@ Modes (see :func:`parse_fusion_mode`):
 * ``"idw"``     -- inverse distance weighting ``w_k ~ d_k^-gamma`` between the camera origin
   and the block centres (Block-NeRF style).
 * ``"nearest"`` -- the block whose centre is nearest to the camera origin.
+* ``"nearest-guarded"`` -- ``nearest``, except where that block is transparent and the global model
+  opaque (:func:`guard_transparent`): the global model's values there. Guards against a block that
+  did not learn what the global model shows (a block that never trained renders the background).
 * ``"nearest-idw"`` -- the ``blocks_per_ray`` blocks whose centres are nearest to the camera origin,
   weighted by inverse distance ``d_k^-gamma`` (:func:`nearest_idw_weights`): ``nearest`` blended
   with its neighbours where a camera stands between blocks (two blocks per ray: +0.13-0.16 dB over
@@ -33,6 +36,7 @@ Modes (see :func:`parse_fusion_mode`):
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Literal, get_args
@@ -50,6 +54,7 @@ __all__ = [
     "fuse_outputs",
     "fuse_weighted",
     "fusion_weights",
+    "guard_transparent",
     "idw_weights",
     "nearest_block",
     "nearest_blocks",
@@ -63,7 +68,7 @@ __all__ = [
     "weights_winner",
 ]
 
-FusionMode = Literal["global", "surface", "idw", "nearest", "nearest-idw", "global-only"]
+FusionMode = Literal["global", "surface", "idw", "nearest", "nearest-guarded", "nearest-idw", "global-only"]
 FUSION_MODES: tuple[str, ...] = get_args(FusionMode)
 #: Output keys fused by :func:`fuse_outputs` (when present in every input).
 FUSED_KEYS: tuple[str, ...] = ("rgb", "depth", "accumulation")
@@ -77,7 +82,7 @@ class FusionModeError(ValueError):
 class ParsedFusionMode:
     """A parsed fusion mode: ``kind`` is a :data:`FusionMode` or ``"block"`` with ``block_index``."""
 
-    kind: Literal["global", "surface", "idw", "nearest", "nearest-idw", "global-only", "block"]
+    kind: Literal["global", "surface", "idw", "nearest", "nearest-guarded", "nearest-idw", "global-only", "block"]
     block_index: int | None = None
 
     def __str__(self) -> str:
@@ -85,7 +90,7 @@ class ParsedFusionMode:
 
 
 def parse_fusion_mode(mode: str | ParsedFusionMode, num_blocks: int | None = None) -> ParsedFusionMode:
-    """Parse ``"global" | "surface" | "idw" | "nearest" | "nearest-idw" | "global-only" | "block:<k>"``.
+    """Parse ``"global" | "surface" | "idw" | "nearest" | "nearest-guarded" | "nearest-idw" | "global-only" | "block:<k>"``.
 
     Args:
         mode: The mode string (case-insensitive, surrounding blanks ignored) or an already parsed mode.
@@ -428,6 +433,39 @@ def nearest_idw_weights(
     return weights.to(out_dtype)
 
 
+def guard_transparent(
+    weights: Tensor, block_accumulation: Tensor, global_accumulation: Tensor, threshold: float = 0.5
+) -> Tensor:
+    """``nearest-guarded``: take the blocks out of the pixels where what they give is transparent
+    (accumulated opacity below ``threshold``) and the global model's render opaque (at least it).
+
+    Args:
+        weights: ``[K, N]`` fusion weights (:func:`fusion_weights`).
+        block_accumulation: ``[K, N]`` or ``[K, N, 1]`` each block's accumulation; NaN where a block
+            was not rendered.
+        global_accumulation: ``[N]`` or ``[N, 1]`` the global model's; NaN where it was not rendered
+            (no guard there).
+        threshold: in (0, 1].
+
+    Returns:
+        ``[K, N]`` weights, all zero at the guarded pixels: :func:`fuse_weighted` gives them the
+        global model's values (its ``fallback``), and :func:`weights_winner` -1.
+    """
+    if not (isinstance(threshold, (int, float)) and math.isfinite(threshold) and 0.0 < threshold <= 1.0):
+        raise ValueError(f"threshold must be a number in (0, 1], got {threshold!r}")
+    if weights.ndim != 2:
+        raise ValueError(f"weights must have shape [K, N], got {list(weights.shape)}")
+    num_blocks, num_pixels = weights.shape
+    if block_accumulation.shape not in ((num_blocks, num_pixels), (num_blocks, num_pixels, 1)):
+        raise ValueError(f"block_accumulation must have shape [{num_blocks}, {num_pixels}(, 1)], got {list(block_accumulation.shape)}")
+    if global_accumulation.shape not in ((num_pixels,), (num_pixels, 1)):
+        raise ValueError(f"global_accumulation must have shape [{num_pixels}(, 1)], got {list(global_accumulation.shape)}")
+    given = fuse_weighted(block_accumulation.reshape(num_blocks, num_pixels, 1), weights)[:, 0]  # [N]; NaN where no block
+    glob = global_accumulation.reshape(num_pixels).to(given.device)
+    guarded = (given < threshold) & (glob >= threshold)  # NaN on either side compares False: no guard
+    return torch.where(guarded[None], torch.zeros_like(weights), weights)
+
+
 def fuse_weighted(block_values: Tensor, weights: Tensor, fallback: Tensor | None = None) -> Tensor:
     """Weighted sum over blocks, ignoring NaN/inf contributions.
 
@@ -507,6 +545,7 @@ def fuse_outputs(
     gamma: float = 1.0,
     block_scores: Tensor | None = None,
     blocks_per_ray: int | None = None,
+    guard_accumulation: float = 0.5,
 ) -> dict[str, Tensor]:
     """Fuse block renders into one output dict.
 
@@ -519,8 +558,9 @@ def fuse_outputs(
     Args:
         mode: A :data:`FusionMode` or ``"block:<k>"``.
         block_outputs: K dicts of block renders of the same pixels.
-        global_outputs: The coarse global model's renders; required for ``"global"`` and
-            ``"global-only"``, used as fallback (pixels without a usable block) otherwise.
+        global_outputs: The coarse global model's renders; required for ``"global"``,
+            ``"global-only"`` and ``"nearest-guarded"`` (with ``"accumulation"``), used as fallback
+            (pixels without a usable block) otherwise.
         camera_origin: ``[3]`` or per-pixel ``[H, W, 3]`` / ``[N, 3]`` origins (idw/nearest/nearest-idw).
         block_centres: ``[K, 3]`` block centres, same frame as ``camera_origin`` (idw/nearest/nearest-idw).
         gamma: IDW exponent (``idw``, ``nearest-idw`` and ``surface``).
@@ -528,6 +568,8 @@ def fuse_outputs(
             surface point (required for ``surface``).
         blocks_per_ray: ``surface``: how many of the best-scoring blocks are weighted per pixel;
             ``nearest-idw``: how many of the blocks nearest the camera (default: all).
+        guard_accumulation: ``nearest-guarded``: the accumulation below which a block counts as
+            transparent and at or above which the global model counts as opaque (:func:`guard_transparent`).
 
     Returns:
         Fused ``"rgb"`` (+ ``"depth"``, ``"accumulation"``) shaped like the inputs, and
@@ -535,7 +577,7 @@ def fuse_outputs(
         block for idw / nearest-idw / surface, ``-1`` for the global fallback and for ``"global-only"``.
     """
     parsed = parse_fusion_mode(mode)
-    if parsed.kind in ("global", "global-only") and (global_outputs is None or "rgb" not in global_outputs):
+    if parsed.kind in ("global", "global-only", "nearest-guarded") and (global_outputs is None or "rgb" not in global_outputs):
         raise ValueError(f"fusion mode {str(parsed)!r} needs the global model's outputs (with 'rgb')")
     if parsed.kind != "global-only" and not block_outputs:
         raise ValueError(f"fusion mode {str(parsed)!r} needs at least one block output")
@@ -545,7 +587,7 @@ def fuse_outputs(
     keys = _fused_keys([] if parsed.kind == "global-only" else block_outputs, global_outputs)
     if "rgb" not in keys:
         raise ValueError("every block output must contain 'rgb'")
-    if parsed.kind == "global" and global_outputs is not None:
+    if parsed.kind in ("global", "nearest-guarded") and global_outputs is not None:
         keys = [k for k in keys if k in global_outputs]
     glob = None
     if global_outputs is not None:
@@ -560,6 +602,10 @@ def fuse_outputs(
         parsed, stacked["rgb"], None if glob is None else glob.get("rgb"),
         None if camera_origin is None else _origins(camera_origin, pixel_shape), block_centres, gamma, scores, blocks_per_ray,
     )
+    if parsed.kind == "nearest-guarded":
+        if "accumulation" not in stacked:
+            raise ValueError("fusion mode 'nearest-guarded' needs 'accumulation' in every block output and in the global model's")
+        weights = guard_transparent(weights, stacked["accumulation"], glob["accumulation"], guard_accumulation)  # type: ignore[index]
     fused = {k: fuse_weighted(v, weights, None if glob is None else glob.get(k)) for k, v in stacked.items()}
     out = {k: v.reshape(*pixel_shape, v.shape[-1]) for k, v in fused.items()}
     out["block_winner"] = weights_winner(weights).reshape(pixel_shape)
@@ -586,7 +632,8 @@ def fusion_weights(
     """``[K, N]`` per-pixel block weights of a fusion mode (one-hot for global / nearest / block).
 
     Args:
-        mode: any mode but ``global-only``.
+        mode: any mode but ``global-only``; ``nearest-guarded`` gives ``nearest``'s weights (its guard,
+            :func:`guard_transparent`, needs the accumulations).
         block_rgb: ``[K, N, 3]`` block colours; a block whose colour is NaN/inf at a pixel gets weight 0 there.
         global_rgb: ``[N, 3]`` (``global``).
         camera_origin: ``[3]`` or ``[N, 3]`` (``idw``, ``nearest``, ``nearest-idw``).

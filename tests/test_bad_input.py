@@ -459,6 +459,8 @@ OPTION_CASES = [
     ("pipeline.model.warmup_samples_per_ray", -1, None, "--pipeline.model.warmup-samples-per-ray -1: must be a whole number >= 0"),
     ("pipeline.model.nearest_idw_gamma", -1.0, None, "--pipeline.model.nearest-idw-gamma -1: must be a finite number >= 0"),
     ("pipeline.model.idw_gamma", math.inf, None, "--pipeline.model.idw-gamma inf: must be a finite number >= 0"),
+    ("pipeline.model.guard_accumulation", 0.0, None, "--pipeline.model.guard-accumulation 0: must be a number in (0, 1]"),
+    ("pipeline.model.guard_accumulation", 1.5, None, "--pipeline.model.guard-accumulation 1.5: must be a number in (0, 1]"),
     ("max_num_iterations", -1, None, "--max-num-iterations -1"),
     ("steps_per_save", 0, None, "--steps-per-save 0"),
 ]

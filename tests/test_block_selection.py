@@ -210,6 +210,35 @@ def test_nearest_idw_renders_the_two_nearest_blocks_per_ray_and_matches_blending
     assert bool((blends == 2).all()) and float(weights.max(dim=1).values.min()) < 0.99  # some rays do mix two blocks
 
 
+def test_nearest_guarded_gives_the_global_model_where_the_nearest_block_learnt_nothing() -> None:
+    rays = _rays()
+    nearest, guarded = _scene_model("nearest", blocks_per_ray=1), _scene_model("nearest-guarded", blocks_per_ray=1)
+    with torch.no_grad():
+        glob = guarded.global_model.render_rays(rays, normals=False)
+        expected, healthy = nearest.get_outputs(rays), guarded.get_outputs(rays)
+    global_opaque = glob["accumulation"][:, 0] >= 0.5
+    guarded_rays = (expected["accumulation"][:, 0] < 0.5) & global_opaque
+    kept = ~guarded_rays
+    assert torch.equal(healthy["rgb"][kept], expected["rgb"][kept])  # nearest's image wherever its block is opaque or both are not
+    assert torch.allclose(healthy["rgb"][guarded_rays], glob["rgb"][guarded_rays], atol=1e-5)
+    assert (healthy["block_winner"][guarded_rays] == -1).all() and (healthy["block_winner"][kept] >= 0).all()
+
+    # Block 1 learnt nothing (it renders the background everywhere): the guard gives its rays to the global model.
+    for model in (nearest, guarded):
+        model.blocks["1"].field.decoder.density_bias = -100.0
+    guarded.rays_rendered_by_block = {}
+    with torch.no_grad():
+        empty, rescued = nearest.get_outputs(rays), guarded.get_outputs(rays)
+    ones = (expected["block_winner"][:, 0] == 1) & global_opaque
+    assert int(ones.sum()) >= 10, "the test needs rays of block 1 where the global model is opaque"
+    assert float(empty["accumulation"][ones].max()) < 1e-3  # nearest shows the empty block there
+    assert torch.allclose(rescued["rgb"][ones], glob["rgb"][ones], atol=1e-5)
+    assert torch.allclose(rescued["accumulation"][ones], glob["accumulation"][ones], atol=1e-5)
+    assert (rescued["block_winner"][ones] == -1).all()
+    assert sum(guarded.rays_rendered_by_block.values()) == 96  # still one block render per ray; the global model only where needed
+    assert float(((rescued["rgb"] - glob["rgb"]) ** 2).mean()) < float(((empty["rgb"] - glob["rgb"]) ** 2).mean())
+
+
 # ------------------------------------------------------------------------------ a block's occupancy from the global model
 
 

@@ -15,6 +15,7 @@ from scalar_nerfstudio.fusion import (
     fuse_global_guided,
     fuse_outputs,
     fuse_weighted,
+    guard_transparent,
     idw_weights,
     nearest_block,
     nearest_blocks,
@@ -268,6 +269,50 @@ def test_fuse_outputs_nearest_idw_blends_two_blocks_and_falls_back() -> None:
     assert parse_fusion_mode(" Nearest-IDW ").kind == "nearest-idw" and "nearest-idw" in FUSION_MODES
 
 
+def test_nearest_guarded_gives_the_global_model_where_the_block_is_transparent_and_it_is_opaque() -> None:
+    # Camera nearest block 0. Pixels: 0 both opaque; 1 the block transparent, the global model opaque;
+    # 2 both transparent (the sky); 3 the block opaque, the global model not; 4 the global model not rendered.
+    origin = torch.tensor([1.0, 0.0, 0.0])
+    block0 = {"rgb": torch.full((5, 3), 0.2), "depth": torch.full((5, 1), 1.0),
+              "accumulation": torch.tensor([[0.9], [0.1], [0.1], [0.9], [0.1]])}
+    block1 = {"rgb": torch.full((5, 3), 0.8), "depth": torch.full((5, 1), 3.0), "accumulation": torch.full((5, 1), 0.9)}
+    glob = {"rgb": torch.full((5, 3), 0.5), "depth": torch.full((5, 1), 2.0),
+            "accumulation": torch.tensor([[0.9], [0.9], [0.2], [0.1], [NAN]])}
+    out = fuse_outputs("nearest-guarded", [block0, block1], glob, origin, CENTRES[:2])
+    assert out["rgb"][:, 0].tolist() == pytest.approx([0.2, 0.5, 0.2, 0.2, 0.2])
+    assert out["depth"][:, 0].tolist() == pytest.approx([1.0, 2.0, 1.0, 1.0, 1.0])  # depth and accumulation follow the colour
+    assert out["accumulation"][1, 0] == pytest.approx(0.9)
+    assert out["block_winner"].tolist() == [0, -1, 0, 0, 0]
+    assert (fuse_outputs("nearest", [block0, block1], glob, origin, CENTRES[:2])["block_winner"] == 0).all()  # nearest: no guard
+    lenient = fuse_outputs("nearest-guarded", [block0, block1], glob, origin, CENTRES[:2], guard_accumulation=0.05)
+    assert (lenient["block_winner"] == 0).all()  # 0.1 is opaque enough at this threshold
+    with pytest.raises(ValueError, match="global model's outputs"):
+        fuse_outputs("nearest-guarded", [block0, block1], None, origin, CENTRES[:2])
+    with pytest.raises(ValueError, match="accumulation"):
+        fuse_outputs("nearest-guarded", [{"rgb": block0["rgb"]}, {"rgb": block1["rgb"]}], {"rgb": glob["rgb"]}, origin, CENTRES[:2])
+
+
+def test_guard_transparent_on_missing_and_extreme_values() -> None:
+    weights = torch.tensor([[1.0, 0.0, 1.0, 0.5, 1.0, 1.0], [0.0, 1.0, 0.0, 0.5, 0.0, 0.0]])
+    blocks = torch.tensor([[0.0, NAN, INF, 0.2, -INF, 0.3], [0.0, 0.0, 0.0, 0.6, 0.0, 0.0]])
+    glob = torch.tensor([1.0, 1.0, 1.0, 1.0, INF, -INF])
+    guarded = guard_transparent(weights, blocks, glob)
+    # 0: transparent block, opaque global: guarded. 1: the chosen block 1 is transparent: guarded.
+    # 2: a non-finite block value is not used (no block left, nothing to guard). 3: blended 0.4 < 0.5: guarded.
+    # 4: -inf is not usable either. 5: the global accumulation -inf is below the threshold: kept.
+    assert guarded[:, 5].tolist() == [1.0, 0.0]
+    assert (guarded[:, [0, 1, 3]] == 0).all() and torch.equal(guarded[:, [2, 4]], weights[:, [2, 4]])
+    assert torch.isfinite(guarded).all()
+    assert torch.equal(guard_transparent(weights, blocks[..., None], glob[:, None], threshold=1.0)[:, 5], weights[:, 5])
+    for threshold in (0.0, 1.5, NAN):
+        with pytest.raises(ValueError, match="threshold"):
+            guard_transparent(weights, blocks, glob, threshold)
+    with pytest.raises(ValueError, match="block_accumulation"):
+        guard_transparent(weights, blocks[:1], glob)
+    with pytest.raises(ValueError, match="global_accumulation"):
+        guard_transparent(weights, blocks, glob[:3])
+
+
 @contextlib.contextmanager
 def _float64_ops():
     """Collects the names of the torch ops run inside that produce a float64 tensor."""
@@ -318,7 +363,7 @@ def test_float32_stays_float32_and_matches_float64_on_extreme_inputs(gamma: floa
 
 
 def test_parse_fusion_mode() -> None:
-    assert set(FUSION_MODES) == {"global", "surface", "idw", "nearest", "nearest-idw", "global-only"}
+    assert set(FUSION_MODES) == {"global", "surface", "idw", "nearest", "nearest-guarded", "nearest-idw", "global-only"}
     for mode in FUSION_MODES:
         assert parse_fusion_mode(mode) == ParsedFusionMode(kind=mode)  # type: ignore[arg-type]
     assert parse_fusion_mode(" IDW ").kind == "idw"

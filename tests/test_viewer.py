@@ -27,7 +27,7 @@ CHROMEDRIVER = shutil.which("chromedriver")
 
 
 def test_fusion_options_list_modes_and_blocks() -> None:
-    assert fusion_options(2) == ["global", "surface", "idw", "nearest", "nearest-idw", "global-only", "block:0", "block:1"]
+    assert fusion_options(2) == ["global", "surface", "idw", "nearest", "nearest-guarded", "nearest-idw", "global-only", "block:0", "block:1"]
 
 
 def test_box_edges_are_the_twelve_unit_edges() -> None:
@@ -271,7 +271,7 @@ def test_eval_fusion_table_has_every_mode(full_run: Path, tmp_path: Path) -> Non
     )
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     table = json.loads((tmp_path / "fusion.json").read_text())
-    for mode in ("global", "surface", "idw", "nearest", "nearest-idw", "global-only"):
+    for mode in ("global", "surface", "idw", "nearest", "nearest-guarded", "nearest-idw", "global-only"):
         assert 5.0 < table[mode]["psnr"] < 60.0 and 0.0 < table[mode]["ssim"] <= 1.0 and table[mode]["ms_per_image"] > 0
     for mode in ("global", "surface", "idw"):
         assert table["selection:" + mode]["num_images"] == table[mode]["num_images"] > 0

@@ -27,6 +27,7 @@ from scalar_nerfstudio.fusion import (
     ParsedFusionMode,
     fuse_weighted,
     fusion_weights,
+    guard_transparent,
     nearest_block,
     nearest_blocks,
     parse_fusion_mode,
@@ -68,12 +69,17 @@ class ScalarSceneModelConfig(ScalarModelConfig):
     fusion: str = "nearest"
     """How block renders are fused: nearest (default: per ray the block whose cameras are nearest the
     ray's origin; one block per ray, no global render: the best and cheapest on castle-P30 with blocks
-    started from the global model, docs/fusion.md), nearest-idw (the ``blocks_per_ray`` nearest
+    started from the global model, docs/fusion.md), nearest-guarded (nearest, but the global model's
+    render where the block is transparent and the global model opaque: the global model is rendered on
+    the rays whose block is transparent), nearest-idw (the ``blocks_per_ray`` nearest
     blocks weighted by inverse distance), global (closest to the global model's colour, the
     paper's), surface (the block whose region holds the surface the global depth points to), idw
     (Block-NeRF's inverse distance weighting), global-only, or block:<k>."""
     idw_gamma: float = 1.0
     """Exponent of inverse distance weighting (``idw``, and ``surface`` between its blocks)."""
+    guard_accumulation: float = 0.5
+    """``nearest-guarded``: a block whose accumulation on a ray is below this counts as transparent
+    there, and the global model's render is used where its own accumulation is at least this."""
     nearest_idw_gamma: float = 2.0
     """Exponent of the inverse camera distance that weights the ``blocks_per_ray`` nearest blocks in
     ``nearest-idw`` (2 scored best on the town, docs/town.md)."""
@@ -489,6 +495,8 @@ class ScalarSceneModel(NormalsOutput, Model):
             self.config.nearest_idw_gamma if mode.kind == "nearest-idw" else self.config.idw_gamma, scores,
             self.config.blocks_per_ray or None,
         )
+        if mode.kind == "nearest-guarded":
+            weights, global_outputs = self._guard_transparent_blocks(weights, block_outputs, ray_bundle, normals)
         orphans = ~(weights > 0).any(dim=0)  # [R] rays no block could give: the global model's
         if bool(orphans.any()) and global_outputs is None:
             global_outputs = self._render_global_rays(ray_bundle, orphans, normals)
@@ -502,7 +510,7 @@ class ScalarSceneModel(NormalsOutput, Model):
             fallback = (global_outputs["normals"] if global_outputs is not None and "normals" in global_outputs
                         else normals_to_unit_interval(facing_normals(ray_bundle.directions.reshape(-1, 3))))
             stacked = torch.stack([o["normals"] for o in block_outputs])  # [K', R, 3] in [0, 1]
-            if mode.kind in ("global", "nearest", "block"):  # one winner per ray: its normal, bit for bit
+            if mode.kind in ("global", "nearest", "nearest-guarded", "block"):  # one winner per ray: its normal, bit for bit
                 fused["normals"] = fuse_weighted(stacked, weights, fallback)
             else:  # a weighted mix of unit normals, normalised again
                 mixed = fuse_weighted(normals_from_unit_interval(stacked), weights, normals_from_unit_interval(fallback))
@@ -531,7 +539,7 @@ class ScalarSceneModel(NormalsOutput, Model):
         if mode.kind == "block":
             return every, None
         centres = self.block_centres[block_ids].to(origins.device)
-        if mode.kind == "nearest":
+        if mode.kind in ("nearest", "nearest-guarded"):
             nearest = nearest_block(origins, centres)
             return torch.arange(num_blocks, device=origins.device)[:, None] == nearest[None], None
         limit = self.config.blocks_per_ray
@@ -549,6 +557,23 @@ class ScalarSceneModel(NormalsOutput, Model):
             usable = observed_at(self.block_observation[block_ids], points).to(scores.device)  # [K', R]
             scores = torch.where(usable, scores, torch.full_like(scores, float("inf")))
         return select_blocks(scores, limit if limit > 0 else num_blocks, usable), scores
+
+    def _guard_transparent_blocks(
+        self, weights: Tensor, block_outputs: List[Dict[str, Tensor]], ray_bundle: RayBundle, normals: bool
+    ) -> Tuple[Tensor, Dict[str, Tensor]]:
+        """``nearest-guarded``: the global model renders the rays whose block is transparent (and those
+        no block gave); where it is opaque, the ray is its (:func:`guard_transparent`).
+
+        Returns the ``[K', R]`` weights, zero on the guarded rays, and the global model's outputs (NaN
+        on the rays it did not render)."""
+        threshold = self.config.guard_accumulation
+        block_accumulation = torch.stack([o["accumulation"] for o in block_outputs])  # [K', R, 1]
+        given = fuse_weighted(block_accumulation, weights)[:, 0]  # [R]; NaN where no block
+        suspects = ~(given >= threshold)  # transparent, or no block
+        global_outputs = self._render_global_rays(ray_bundle, suspects, normals)
+        if bool(suspects.any()):
+            self.rendered_models.add("global")
+        return guard_transparent(weights, block_accumulation, global_outputs["accumulation"], threshold), global_outputs
 
     def _render_block_rays(self, block: int, ray_bundle: RayBundle, rays: Tensor, normals: bool) -> Dict[str, Tensor]:
         """Block ``block``'s render of the rays where ``rays`` [R] is True; NaN on the others."""

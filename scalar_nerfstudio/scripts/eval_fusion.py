@@ -34,7 +34,7 @@ class EvalFusionArgs:
     output_dir: Path = Path("fusion_eval")
     """Where fusion.json and fusion.md are written."""
     modes: Tuple[str, ...] = FUSION_MODES
-    """Fusion modes to evaluate (global, surface, idw, nearest, nearest-idw, global-only, block:K)."""
+    """Fusion modes to evaluate (global, surface, idw, nearest, nearest-guarded, nearest-idw, global-only, block:K)."""
     measure_selection: bool = True
     """Also render global, surface and idw with every block on every ray and compare."""
     blocks_per_ray: Optional[int] = None

@@ -59,7 +59,7 @@ class _FusionOption:
     """Adds ``--fusion`` to one of ns-render's commands (put first among the bases)."""
 
     fusion: Optional[str] = None
-    """nearest, nearest-idw, global, surface, idw, global-only or block:K (default: the run's configured fusion)."""
+    """nearest, nearest-guarded, nearest-idw, global, surface, idw, global-only or block:K (default: the run's configured fusion)."""
 
     def main(self) -> None:
         _check(self.fusion)
