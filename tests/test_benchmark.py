@@ -240,6 +240,7 @@ def test_parallel_budget_gives_every_block_the_steps_one_model_trains_after_the_
     parallel, auto = by_name["auto-parallel"], by_name["auto"]
     assert parallel.base == "global" and parallel.eval_every == 0 and auto.eval_every is None
     assert parallel.fusions[0] == ScalarSceneModelConfig.fusion
+    assert {"nearest-idw", "nearest-guarded", "global-only"} <= set(parallel.fusions)  # the same blocks, fused otherwise
     assert parallel.overrides == {**auto.overrides, "pipeline.block_steps": 1000}  # K B = 4 x 250, not K B / 8
     assert auto.overrides["pipeline.block_steps"] == 125
     assert "8 workers" in notes["auto-parallel"] and "8000 block steps" in notes["auto-parallel"]

@@ -218,7 +218,8 @@ def plan(config: BenchmarkConfig) -> Tuple[List[Variant], Dict[str, str]]:
                 automatic = {**blocks, "pipeline.num_blocks": None, "pipeline.block_steps": steps}
                 if name.endswith("fitted"):
                     automatic["pipeline.block_init"] = "fitted"
-                blended = [] if default_fusion == "nearest-idw" else ["nearest-idw"]  # the same blocks, two per ray
+                # the same blocks, two per ray, and with the guard against transparent blocks
+                blended = [mode for mode in ("nearest-idw", "nearest-guarded") if mode != default_fusion]
                 fusions = ([default_fusion, *blended, "global", "global-only"] if name == "auto"
                            else [default_fusion, *blended, "global-only"])
                 out.append(Variant(name, "scalar-nerf", automatic, fusions, base="global", eval_every=0 if parallel else None))
