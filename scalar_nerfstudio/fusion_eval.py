@@ -47,7 +47,7 @@ def _render_all(pipeline: "ScalarPipeline", mode: str, blocks_per_ray: Optional[
     if blocks_per_ray is not None:
         model.config.blocks_per_ray = blocks_per_ray
     sums: Dict[str, float] = {}
-    images, times, blocks_rendered, globals_rendered, block_rays = [], [], [], [], []
+    images, times, blocks_rendered, globals_rendered, block_rays, global_pixels = [], [], [], [], [], []
     try:
         for camera, batch in _eval_images(pipeline, max_images):
             start = time.perf_counter()
@@ -56,6 +56,7 @@ def _render_all(pipeline: "ScalarPipeline", mode: str, blocks_per_ray: Optional[
             blocks_rendered.append(len(model.rendered_models - {"global"}))
             globals_rendered.append("global" in model.rendered_models)
             block_rays.append(sum(model.rays_rendered_by_block.values()) / max(outputs["rgb"][..., 0].numel(), 1))
+            global_pixels.append(float((outputs["block_winner"] < 0).float().mean()) if "block_winner" in outputs else 1.0)
             metrics, _ = model.get_image_metrics_and_images(outputs, batch)
             for key, value in metrics.items():
                 sums[key] = sums.get(key, 0.0) + float(value)
@@ -69,6 +70,7 @@ def _render_all(pipeline: "ScalarPipeline", mode: str, blocks_per_ray: Optional[
     result["blocks_rendered_per_image"] = sum(blocks_rendered) / count
     result["block_renders_per_ray"] = sum(block_rays) / count
     result["global_model_rendered"] = all(globals_rendered)
+    result["global_pixel_share"] = sum(global_pixels) / count
     return result, images
 
 
@@ -120,7 +122,7 @@ def markdown_table(table: Dict[str, Dict[str, float]]) -> str:
     has_depth = any("depth_delta1" in row for row in table.values())  # a scene with true depth (the town)
     header = ("| fusion | PSNR | SSIM |" + (" LPIPS |" if has_lpips else "")
               + (" depth within 25 % | median depth error |" if has_depth else "")
-              + " ms / image | models rendered / image | block renders / ray |")
+              + " ms / image | models rendered / image | block renders / ray | pixels from the global model |")
     lines = [header, "|" + "---|" * (header.count("|") - 1)]
     single = table.get("global-only", {}).get("ms_per_image")
     for mode, row in table.items():
@@ -133,7 +135,8 @@ def markdown_table(table: Dict[str, Dict[str, float]]) -> str:
             cells += [f"{row['depth_delta1']:.1%}", f"{row['depth_median_rel_error']:.1%}"] if "depth_delta1" in row else ["-", "-"]
         models = f"{row['blocks_rendered_per_image']:.2f} blocks" + (" + global" if row.get("global_model_rendered") else "")
         time_cell = f"{row['ms_per_image']:.0f}" + (f" ({row['ms_per_image'] / single:.2f}x)" if single else "")
-        cells += [time_cell, models, f"{row.get('block_renders_per_ray', 0.0):.2f}"]
+        cells += [time_cell, models, f"{row.get('block_renders_per_ray', 0.0):.2f}",
+                  f"{row['global_pixel_share']:.2%}" if "global_pixel_share" in row else "-"]
         lines.append("| " + " | ".join(cells) + " |")
     if single:
         lines += ["", "Times in brackets: relative to `global-only` (one model)."]

@@ -275,5 +275,7 @@ def test_eval_fusion_table_has_every_mode(full_run: Path, tmp_path: Path) -> Non
         assert 5.0 < table[mode]["psnr"] < 60.0 and 0.0 < table[mode]["ssim"] <= 1.0 and table[mode]["ms_per_image"] > 0
     for mode in ("global", "surface", "idw"):
         assert table["selection:" + mode]["num_images"] == table[mode]["num_images"] > 0
+    assert table["global-only"]["global_pixel_share"] == 1.0 and table["nearest"]["global_pixel_share"] == 0.0
+    assert 0.0 <= table["nearest-guarded"]["global_pixel_share"] < 1.0  # the global model only where its block is transparent
     markdown = (tmp_path / "fusion.md").read_text()
     assert "| global |" in markdown and "| idw |" in markdown
