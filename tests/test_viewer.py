@@ -111,7 +111,7 @@ def test_dropdown_switches_fusion_and_block_colours(full_run: Path) -> None:
     model = pipeline.model
     camera, _ = next(iter(pipeline.datamanager.fixed_indices_eval_dataloader))
     dropdown = pipeline.fusion_dropdown
-    assert dropdown.value == "nearest" and dropdown.options == fusion_options(NUM_BLOCKS)  # the default fusion
+    assert dropdown.value == "nearest-guarded" and dropdown.options == fusion_options(NUM_BLOCKS)  # the default fusion
     fused = model.get_outputs_for_camera(camera)
     winners = set(fused["block_winner"].unique().long().tolist())
     assert winners <= set(range(NUM_BLOCKS)) and winners

@@ -12,7 +12,7 @@ Variants (same scene, same machine, same run; each trains in its own process):
   models, other fusions; ``global-only`` is the global model alone).
 * ``scalar-init-global``: as ``scalar``, but every block starts as a copy of the global model
   (``--pipeline.block-init global``, the default since it measured best: its frame, table, occupancy
-  grid, appearance) and fine-tunes it; evaluated with ``nearest`` (the default fusion) first.
+  grid, appearance) and fine-tunes it; evaluated with ``nearest`` first.
 * ``scalar-fitted``: as ``scalar`` (own frame, table 2^T), but each block's table is first fitted to the
   global model's encoding on the block's observed space (``--pipeline.block-init fitted``); evaluated
   with ``nearest`` first.
@@ -218,8 +218,8 @@ def plan(config: BenchmarkConfig) -> Tuple[List[Variant], Dict[str, str]]:
                 automatic = {**blocks, "pipeline.num_blocks": None, "pipeline.block_steps": steps}
                 if name.endswith("fitted"):
                     automatic["pipeline.block_init"] = "fitted"
-                # the same blocks, two per ray, and with the guard against transparent blocks
-                blended = [mode for mode in ("nearest-idw", "nearest-guarded") if mode != default_fusion]
+                # the same blocks: nearest without the guard, and the two nearest blended
+                blended = [mode for mode in ("nearest", "nearest-guarded", "nearest-idw") if mode != default_fusion]
                 fusions = ([default_fusion, *blended, "global", "global-only"] if name == "auto"
                            else [default_fusion, *blended, "global-only"])
                 out.append(Variant(name, "scalar-nerf", automatic, fusions, base="global", eval_every=0 if parallel else None))
