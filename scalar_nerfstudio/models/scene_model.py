@@ -563,7 +563,7 @@ class ScalarSceneModel(NormalsOutput, Model):
         self, weights: Tensor, block_outputs: List[Dict[str, Tensor]], ray_bundle: RayBundle, normals: bool
     ) -> Tuple[Tensor, Dict[str, Tensor]]:
         """``nearest-guarded``: the global model renders the rays whose block is transparent (and those
-        no block gave); where it is opaque, the ray is its (:func:`guard_transparent`).
+        no block gave); where it is opaque, the ray takes its render (:func:`guard_transparent`).
 
         Returns the ``[K', R]`` weights, zero on the guarded rays, and the global model's outputs (NaN
         on the rays it did not render)."""
