@@ -1,7 +1,7 @@
 """``scalar-nerf-render``: nerfstudio's ``ns-render`` with ``--fusion``.
 
 Same subcommands (camera-path, interpolate, spiral, dataset) and options as ``ns-render``, plus
-``--fusion {nearest,nearest-idw,global,surface,idw,global-only,block:K}``. Without ``--fusion`` (and with plain
+``--fusion {nearest-guarded,nearest,nearest-idw,global,surface,idw,global-only,block:K}``. Without ``--fusion`` (and with plain
 ``ns-render``) a scalar-nerf run renders with the fusion it was configured with (default nearest-guarded).
 
     scalar-nerf-render dataset --load-config RUN/config.yml --fusion idw --output-path renders/
