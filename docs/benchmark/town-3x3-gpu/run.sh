@@ -11,6 +11,8 @@
 # JSON, fusion.json, run.log, logs.tgz with every process's log).
 #
 #     OUT=outputs/town3x3-gpu bash docs/benchmark/town-3x3-gpu/run.sh
+# ONE_MODEL_TABLES (default "T T+2 T+4") and MODES (the fusions evaluated) trim the work to a short
+# device call.
 #     STEPS=40 GLOBAL_STEPS=20 EVAL_EVERY=20 RAYS=256 OUT=/tmp/dry bash docs/benchmark/town-3x3-gpu/run.sh  # a dry run
 set -uo pipefail
 cd "$(dirname "$0")/../../.."
@@ -24,6 +26,8 @@ rays=${RAYS:-4096}
 t=${T:-12}
 eval_every=${EVAL_EVERY:-$((steps / 4))}
 blocks_per_gpu=${BLOCKS_PER_GPU:-8}
+one_model_tables=(${ONE_MODEL_TABLES:-$t $((t + 2)) $((t + 4))})   # log2 table sizes of the one-model runs
+fusion_modes=(${MODES:-nearest nearest-idw global global-only})
 mkdir -p "$out" "$work"
 export PYTHONUNBUFFERED=1
 say() { echo "=== $(date +%H:%M:%S) $*" | tee -a "$out/run.log"; }
@@ -57,13 +61,12 @@ python -c "import torch; print('torch', torch.__version__, 'cuda', torch.cuda.is
 say "build the CUDA hash grid once (the runs would wait on its lock)"
 python -c "from scalar_nerfstudio.encodings._cpp import CUDA_HASH_GRID as k; import torch; print('CUDA hash grid:', k.load() is not None if torch.cuda.is_available() else 'no GPU')" 2>&1 | tail -1 | tee -a "$out/run.log"
 
-spec "ngp$t" "$t" "$steps" 1 "$eval_every"
-spec "ngp$((t + 2))" "$((t + 2))" "$steps" 1 "$eval_every"
-spec "ngp$((t + 4))" "$((t + 4))" "$steps" 1 "$eval_every"
+for log2 in "${one_model_tables[@]}"; do spec "ngp$log2" "$log2" "$steps" 1 "$eval_every"; done
 spec "global$t" "$t" "$global_steps" null "$global_steps"
 
 pids=()
-for name in "ngp$t" "ngp$((t + 2))" "ngp$((t + 4))"; do
+for log2 in "${one_model_tables[@]}"; do
+    name="ngp$log2"
     say "start $name ($steps steps of $rays rays)"
     OMP_NUM_THREADS=2 python -m scalar_nerfstudio.benchmarking.runner "$work/$name.spec.json" > "$work/$name.log" 2>&1 &
     pids+=($!)
@@ -84,7 +87,7 @@ done
     assembled=$(grep -o "[^ ]*/config.yml" "$work/train-blocks.log" | tail -1)
     [ -n "$assembled" ] || assembled=$(find "$work/blocks" -path "*assembled*" -name config.yml | head -1)
     say "eval-fusion on $assembled"
-    scalar-nerf-eval-fusion --load-config "$assembled" --output-dir "$work/fusion" --modes nearest nearest-idw global global-only \
+    scalar-nerf-eval-fusion --load-config "$assembled" --output-dir "$work/fusion" --modes "${fusion_modes[@]}" \
         --no-measure-selection > "$work/eval-fusion.log" 2>&1 || { say "eval-fusion failed"; tail -30 "$work/eval-fusion.log"; exit 1; }
     cp "$work/fusion/fusion.json" "$out/fusion.json"
     say "eval-fusion done"
