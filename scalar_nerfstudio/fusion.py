@@ -65,6 +65,7 @@ __all__ = [
     "select_blocks",
     "select_winner",
     "surface_points",
+    "transparent_pixels",
     "weights_winner",
 ]
 
@@ -433,11 +434,35 @@ def nearest_idw_weights(
     return weights.to(out_dtype)
 
 
+def transparent_pixels(weights: Tensor, block_accumulation: Tensor, threshold: float = 0.5) -> Tensor:
+    """The pixels whose blocks give no opaque render: ``[N]`` bool, True where the accumulation the
+    fused blocks give (weighted as :func:`fuse_weighted` weights them) is below ``threshold`` or where
+    no block gives a usable (finite) one. The pixels :func:`guard_transparent` may hand to the global
+    model, so the ones it must have rendered.
+
+    Args:
+        weights: ``[K, N]`` fusion weights (:func:`fusion_weights`).
+        block_accumulation: ``[K, N]`` or ``[K, N, 1]`` each block's accumulation; NaN where a block
+            was not rendered.
+        threshold: in (0, 1].
+    """
+    if not (isinstance(threshold, (int, float)) and math.isfinite(threshold) and 0.0 < threshold <= 1.0):
+        raise ValueError(f"threshold must be a number in (0, 1], got {threshold!r}")
+    if weights.ndim != 2:
+        raise ValueError(f"weights must have shape [K, N], got {list(weights.shape)}")
+    num_blocks, num_pixels = weights.shape
+    if block_accumulation.shape not in ((num_blocks, num_pixels), (num_blocks, num_pixels, 1)):
+        raise ValueError(f"block_accumulation must have shape [{num_blocks}, {num_pixels}(, 1)], got {list(block_accumulation.shape)}")
+    given = fuse_weighted(block_accumulation.reshape(num_blocks, num_pixels, 1), weights)[:, 0]  # [N]; NaN where no block
+    return ~(given >= threshold)  # NaN compares False: no usable block counts as transparent
+
+
 def guard_transparent(
     weights: Tensor, block_accumulation: Tensor, global_accumulation: Tensor, threshold: float = 0.5
 ) -> Tensor:
     """``nearest-guarded``: take the blocks out of the pixels where what they give is transparent
-    (accumulated opacity below ``threshold``) and the global model's render opaque (at least it).
+    (:func:`transparent_pixels`: accumulated opacity below ``threshold``, or no usable block) and the
+    global model's render opaque (at least ``threshold``).
 
     Args:
         weights: ``[K, N]`` fusion weights (:func:`fusion_weights`).
@@ -451,19 +476,12 @@ def guard_transparent(
         ``[K, N]`` weights, all zero at the guarded pixels: :func:`fuse_weighted` gives them the
         global model's values (its ``fallback``), and :func:`weights_winner` -1.
     """
-    if not (isinstance(threshold, (int, float)) and math.isfinite(threshold) and 0.0 < threshold <= 1.0):
-        raise ValueError(f"threshold must be a number in (0, 1], got {threshold!r}")
-    if weights.ndim != 2:
-        raise ValueError(f"weights must have shape [K, N], got {list(weights.shape)}")
-    num_blocks, num_pixels = weights.shape
-    if block_accumulation.shape not in ((num_blocks, num_pixels), (num_blocks, num_pixels, 1)):
-        raise ValueError(f"block_accumulation must have shape [{num_blocks}, {num_pixels}(, 1)], got {list(block_accumulation.shape)}")
+    transparent = transparent_pixels(weights, block_accumulation, threshold)  # validates all but the global model's
+    num_pixels = weights.shape[1]
     if global_accumulation.shape not in ((num_pixels,), (num_pixels, 1)):
         raise ValueError(f"global_accumulation must have shape [{num_pixels}(, 1)], got {list(global_accumulation.shape)}")
-    given = fuse_weighted(block_accumulation.reshape(num_blocks, num_pixels, 1), weights)[:, 0]  # [N]; NaN where no block
-    glob = global_accumulation.reshape(num_pixels).to(given.device)
-    guarded = (given < threshold) & (glob >= threshold)  # NaN on either side compares False: no guard
-    return torch.where(guarded[None], torch.zeros_like(weights), weights)
+    opaque = global_accumulation.reshape(num_pixels).to(transparent.device) >= threshold  # NaN compares False: no guard
+    return torch.where((transparent & opaque)[None], torch.zeros_like(weights), weights)
 
 
 def fuse_weighted(block_values: Tensor, weights: Tensor, fallback: Tensor | None = None) -> Tensor:

@@ -22,6 +22,7 @@ from scalar_nerfstudio.fusion import (
     nearest_idw_weights,
     parse_fusion_mode,
     select_winner,
+    transparent_pixels,
 )
 
 NAN, INF = float("nan"), float("inf")
@@ -298,11 +299,18 @@ def test_guard_transparent_on_missing_and_extreme_values() -> None:
     glob = torch.tensor([1.0, 1.0, 1.0, 1.0, INF, -INF])
     guarded = guard_transparent(weights, blocks, glob)
     # 0: transparent block, opaque global: guarded. 1: the chosen block 1 is transparent: guarded.
-    # 2: a non-finite block value is not used (no block left, nothing to guard). 3: blended 0.4 < 0.5: guarded.
-    # 4: -inf is not usable either. 5: the global accumulation -inf is below the threshold: kept.
+    # 2: a non-finite block value is not used, so no block gives an opaque render: guarded (the global
+    # model's values, not a block whose accumulation is broken). 3: blended 0.4 < 0.5: guarded.
+    # 4: -inf is not usable either (the global accumulation +inf counts as opaque). 5: the global
+    # accumulation -inf is below the threshold: kept.
+    assert transparent_pixels(weights, blocks).tolist() == [True, True, True, True, True, True]
+    assert transparent_pixels(weights, blocks, threshold=0.25).tolist() == [True, True, True, False, True, False]
     assert guarded[:, 5].tolist() == [1.0, 0.0]
-    assert (guarded[:, [0, 1, 3]] == 0).all() and torch.equal(guarded[:, [2, 4]], weights[:, [2, 4]])
+    assert (guarded[:, :5] == 0).all()
     assert torch.isfinite(guarded).all()
+    nan_global = glob.clone()
+    nan_global[0] = NAN  # the global model did not render pixel 0: no guard there
+    assert torch.equal(guard_transparent(weights, blocks, nan_global)[:, 0], weights[:, 0])
     assert torch.equal(guard_transparent(weights, blocks[..., None], glob[:, None], threshold=1.0)[:, 5], weights[:, 5])
     for threshold in (0.0, 1.5, NAN):
         with pytest.raises(ValueError, match="threshold"):

@@ -34,6 +34,7 @@ from scalar_nerfstudio.fusion import (
     region_scores,
     select_blocks,
     surface_points,
+    transparent_pixels,
     weights_winner,
 )
 from scalar_nerfstudio.metrics import psnr
@@ -569,8 +570,7 @@ class ScalarSceneModel(NormalsOutput, Model):
         on the rays it did not render)."""
         threshold = self.config.guard_accumulation
         block_accumulation = torch.stack([o["accumulation"] for o in block_outputs])  # [K', R, 1]
-        given = fuse_weighted(block_accumulation, weights)[:, 0]  # [R]; NaN where no block
-        suspects = ~(given >= threshold)  # transparent, or no block
+        suspects = transparent_pixels(weights, block_accumulation, threshold)  # [R]
         global_outputs = self._render_global_rays(ray_bundle, suspects, normals)
         if bool(suspects.any()):
             self.rendered_models.add("global")
