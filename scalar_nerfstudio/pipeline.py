@@ -342,8 +342,9 @@ class ScalarPipeline(VanillaPipeline):
         if phase.block is None:
             return self.datamanager
         if self._block_datamanager_index != phase.block:
-            self._block_datamanager = None
-            gc.collect()
+            if self._block_datamanager is not None:  # finish_phase has usually dropped it (and collected) already
+                self._block_datamanager = None
+                gc.collect()  # free its images (they may sit in reference cycles) before the next block loads its own
             block = self.split.blocks[phase.block]
             CONSOLE.log(f"phase {phase.name}: loading its {len(block.image_indices)} training images")
             config = replace(self.config.datamanager, image_subset=tuple(block.image_indices))
