@@ -344,7 +344,7 @@ class ScalarPipeline(VanillaPipeline):
         if self._block_datamanager_index != phase.block:
             if self._block_datamanager is not None:  # finish_phase has usually dropped it (and collected) already
                 self._block_datamanager = None
-                gc.collect()  # free its images (they may sit in reference cycles) before the next block loads its own
+                gc.collect()  # as finish_phase does: nothing of its images outlives it when the next block loads its own
             block = self.split.blocks[phase.block]
             CONSOLE.log(f"phase {phase.name}: loading its {len(block.image_indices)} training images")
             config = replace(self.config.datamanager, image_subset=tuple(block.image_indices))
