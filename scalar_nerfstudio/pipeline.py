@@ -342,9 +342,7 @@ class ScalarPipeline(VanillaPipeline):
         if phase.block is None:
             return self.datamanager
         if self._block_datamanager_index != phase.block:
-            if self._block_datamanager is not None:  # finish_phase has usually dropped it (and collected) already
-                self._block_datamanager = None
-                gc.collect()  # as finish_phase does: nothing of its images outlives it when the next block loads its own
+            self._release_block_datamanager()  # usually done already by finish_phase
             block = self.split.blocks[phase.block]
             CONSOLE.log(f"phase {phase.name}: loading its {len(block.image_indices)} training images")
             config = replace(self.config.datamanager, image_subset=tuple(block.image_indices))
@@ -371,8 +369,16 @@ class ScalarPipeline(VanillaPipeline):
         path = self.model.store_block(phase.block)
         CONSOLE.log(f"phase {phase.name} done: its model saved to {path} and released from memory")
         if self._block_datamanager_index == phase.block:
-            self._block_datamanager, self._block_datamanager_index = None, None
-            gc.collect()
+            self._release_block_datamanager()
+
+    def _release_block_datamanager(self) -> None:
+        """Drop the block datamanager, if one is held, with its images, and collect at once (a
+        full collection per block change, so that nothing of them outlives it when the next block
+        loads its own)."""
+        if self._block_datamanager is None:
+            return
+        self._block_datamanager, self._block_datamanager_index = None, None
+        gc.collect()
 
     def get_train_loss_dict(self, step: int):
         """One training batch of the phase at ``step``, through that phase's model."""
