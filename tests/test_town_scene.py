@@ -89,7 +89,7 @@ def test_scene_json_records_options_and_geometry(tiny_scene: Path) -> None:
 def test_config_rejects_bad_options() -> None:
     for bad, field in (({"width": 0}, "width"), ({"num_images": -1}, "num_images"), ({"blocks_x": 0}, "blocks_x"),
                        ({"block_size": -5.0}, "block_size"), ({"road_width": 20.0}, "road_width"), ({"fov_x_deg": 180.0}, "fov_x_deg"),
-                       ({"capture": "drone"}, "capture"), ({"rig_headings": ()}, "rig_headings"), ({"rig_headings": (float("nan"),)}, "rig_headings")):
+                       ({"capture": "drone"}, "capture"), ({"aerial_altitude": 0.0}, "aerial_altitude"), ({"aerial_altitude": 70.0}, "aerial_altitude"), ({"rig_headings": ()}, "rig_headings"), ({"rig_headings": (float("nan"),)}, "rig_headings")):
         with pytest.raises(ValueError, match=field):
             TownConfig(**bad)
 
@@ -143,6 +143,76 @@ def test_rig_puts_every_held_out_view_between_training_views_of_its_camera() -> 
     # One stop away (two where the neighbouring stop turned into another street).
     assert (near_rig < 2.1 * stop_spacing).all() and np.median(near_rig) < 1.1 * stop_spacing, near_rig / stop_spacing
     assert (near_walk > 2.5 * stop_spacing).mean() > 0.4, near_walk / stop_spacing
+
+
+def test_aerial_flight_covers_the_town_from_above_looking_down() -> None:
+    """The ``aerial`` capture: every camera flies above the tallest roof, looks down 6-14 degrees
+    forward of the vertical, an even number of flight lines (as many frames each way) cover the
+    whole town (ring included) with side overlap, and a held-out frame lies a few metres from
+    training frames that look the same way."""
+    config = TownConfig(num_images=400, width=16, height=12, blocks_x=2, blocks_y=2, capture="aerial", seed=5)
+    town = build_town(config)
+    poses = town_camera_poses(town)
+    assert poses.shape == (400, 4, 4)
+    centres = poses[:, :3, 3]
+    assert (centres[:, 2] >= town.hi[:, 2].max() + 2.0).all()
+    assert (np.abs(centres[:, 2] - config.aerial_altitude) <= 0.5).all()
+    down = poses[:, 2, 2]  # -(world z of the optical axis): the camera looks along its -z
+    assert (down >= np.cos(np.radians(14.0)) - 1e-9).all() and (down <= np.cos(np.radians(6.0)) + 1e-9).all()
+    # Each line's footprint across it (image width on the ground) overlaps its neighbours'.
+    footprint = 2.0 * config.aerial_altitude * np.tan(np.radians(config.fov_x_deg) / 2.0)
+    lines = np.unique(np.round(centres[:, 1], 6))
+    assert len(lines) >= 4 and len(lines) % 2 == 0 and np.all(np.diff(lines) <= 0.5 * footprint + 1e-6), (lines, footprint)
+    eastward = -poses[:, 0, 2] > 0
+    assert abs(int(eastward.sum()) - int((~eastward).sum())) <= 1
+    (sx, sy) = config.extent
+    assert lines[0] - footprint / 2.0 <= -sy / 2.0 and lines[-1] + footprint / 2.0 >= sy / 2.0
+    assert centres[:, 0].min() < -sx / 2.0 + 2.0 and centres[:, 0].max() > sx / 2.0 - 2.0
+    near = _nearest_like_training_frame(poses, max_angle_deg=25.0)
+    spacing = len(lines) * sx / len(poses)
+    assert (near < 2.1 * spacing).all(), near / spacing
+
+
+def test_aerial_frames_see_ground_and_roofs_only_within_the_depth_range(tmp_path: Path) -> None:
+    """Looking down from the default altitude, no pixel sees the sky or lies beyond the depth PNGs'
+    range (a zero there would read as sky), and the depth agrees with the flight height."""
+    config = TownConfig(num_images=9, width=24, height=18, blocks_x=1, blocks_y=1, capture="aerial", seed=6)
+    write_town(tmp_path / "scene", config, progress=False)
+    town = build_town(config)
+    for index, pose in enumerate(town_camera_poses(town)):
+        depth = read_depth_png(tmp_path / "scene" / "depths" / f"frame_{index:05d}.png")
+        assert (depth > 0).all() and depth.max() <= DEPTH_PNG_MAX_M
+        half_height = np.tan(np.radians(config.fov_x_deg) / 2.0) * config.height / config.width
+        deepest = pose[2, 3] / (np.cos(np.radians(14.0)) - half_height * np.sin(np.radians(14.0)))  # the ground at a far corner
+        assert depth.max() <= deepest + 0.01
+        # The tallest roof at the nearest; a ray's z-depth is its drop over at most sqrt(1 + half_height^2).
+        assert depth.min() >= (pose[2, 3] - town.hi[:, 2].max()) / np.sqrt(1.0 + half_height**2) - 0.01
+
+
+def test_nerfstudio_keeps_an_aerial_town_level(tmp_path: Path) -> None:
+    """nerfstudio's default orientation (the cameras' mean "up" becomes +z) keeps the town level:
+    the flight's cameras, at one altitude, stay within a few centimetres per 100 m of one height
+    in the dataparser's frame (back-and-forth lines with no forward lean would tilt it)."""
+    from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
+
+    config = TownConfig(num_images=120, width=16, height=12, blocks_x=2, blocks_y=2, capture="aerial", seed=7)
+    write_town(tmp_path / "scene", config, progress=False)
+    train = NerfstudioDataParserConfig(data=tmp_path / "scene", eval_mode="interval", eval_interval=8).setup().get_dataparser_outputs(split="train")
+    centres = train.cameras.camera_to_worlds[:, :3, 3].double().numpy()
+    spread = np.ptp(centres[:, :2], axis=0).max()
+    assert spread > 0 and np.ptp(centres[:, 2]) < 0.03 * spread, (np.ptp(centres[:, 2]), spread)  # jitter: 1 m in 150 m
+
+
+@pytest.mark.parametrize("altitude, message", [(20.0, "tallest roof"), (64.0, "beyond the depth PNGs")])
+def test_an_aerial_altitude_that_cannot_be_flown_is_refused_before_writing(tmp_path: Path, altitude: float, message: str) -> None:
+    config = TownConfig(num_images=4, width=16, height=12, blocks_x=2, blocks_y=2, capture="aerial", aerial_altitude=altitude, seed=5)
+    with pytest.raises(ValueError, match=message):
+        write_town(tmp_path / "scene", config, progress=False)
+    assert not (tmp_path / "scene").exists()
+    result = _cli("--output", str(tmp_path / "cli"), "--num-images", "4", "--width", "16", "--height", "12", "--blocks-x", "2", "--blocks-y", "2",
+                  "--seed", "5", "--capture", "aerial", "--aerial-altitude", str(altitude))
+    assert result.returncode == 2 and "--aerial-altitude" in result.stderr and message in result.stderr, result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1 and not (tmp_path / "cli").exists()
 
 
 def test_a_version_1_scene_loads_as_the_walk_it_was(tiny_scene: Path, tmp_path: Path) -> None:
@@ -509,6 +579,7 @@ def test_cli_writes_a_town_and_a_courtyard(tmp_path: Path) -> None:
         (["--fov", "175"], "--fov"),
         (["--scene", "courtyard", "--blocks-x", "2"], "only for --scene town"),
         (["--scene", "courtyard", "--capture", "walk"], "only for --scene town"),
+        (["--scene", "courtyard", "--aerial-altitude", "50"], "only for --scene town"),
         (["--rig-headings", "200"], "--rig-headings"),
         (["--capture", "drone"], "--capture"),
         (["NON_EMPTY"], "not empty"),

@@ -6,7 +6,11 @@ buildings of varied footprints and heights, enclosed by a ring of buildings so t
 ends at a facade. Street-level cameras (1.5-2 m high) drive the streets on a rig, as in Block-NeRF's
 capture: the vehicle stops at even intervals and each of its cameras (by default two, 30 degrees
 left and right of the driving direction) takes a frame (``capture="rig"``). The older ``walk``
-capture (one frame per position, random heading) stays available.
+capture (one frame per position, random heading) stays available. The ``aerial`` capture flies a
+drone over the whole town in parallel flight lines (a survey's lawnmower), looking down, 6-14
+degrees forward of the vertical: each frame sees a patch of roofs and streets a few tens of metres across,
+so the cameras of one block see mostly that block's part of the town (the regime of the paper's
+large-area captures, where blocks split the scene's content and not only its views).
 
 Everything is ray-cast with numpy: rays against the ground plane and against the buildings (a slab
 test vectorised over boxes; the boxes are grouped by city block, the blocks taken nearest first,
@@ -76,7 +80,7 @@ GENERATOR_VERSION = 2
 #: Generator versions whose scene.json :func:`load_town` reads.
 READABLE_VERSIONS = (1, 2)
 #: The ways the cameras capture the town (:attr:`TownConfig.capture`).
-CAPTURES = ("rig", "walk")
+CAPTURES = ("rig", "walk", "aerial")
 #: Metres per unit of the 16-bit depth PNGs (nerfstudio's default ``depth_unit_scale_factor``).
 DEPTH_PNG_UNIT_M = 1e-3
 #: The largest depth a 16-bit PNG in millimetres holds; farther points are written as 0 (unknown).
@@ -149,6 +153,10 @@ class TownConfig:
     half of its held-out frames have no training frame looking their way within 2.5 stop spacings."""
     rig_headings: Tuple[float, ...] = (30.0, -30.0)
     """``rig`` only: the cameras' headings in degrees from the driving direction (positive: left)."""
+    aerial_altitude: float = 55.0
+    """``aerial`` only: flight altitude above the ground in metres (each frame jitters by up to
+    0.5 m). It must clear the tallest roof by 2 m, and keep every ground pixel within the depth
+    PNGs' 65.5 m (58 m at most for the default 45-degree views of 4:3)."""
     supersample: int = 1
     """Colour samples per pixel along each axis (ss x ss, averaged: anti-aliasing); depth is the
     pixel centre's."""
@@ -183,6 +191,9 @@ class TownConfig:
             raise ValueError(f"TownConfig.camera_height must be a range (low, high) with 0.1 <= low <= high < 6 m, got {self.camera_height!r}")
         if self.capture not in CAPTURES:
             raise ValueError(f"TownConfig.capture must be one of {list(CAPTURES)}, got {self.capture!r}")
+        altitude = self.aerial_altitude
+        if not (isinstance(altitude, (int, float, np.integer, np.floating)) and math.isfinite(altitude) and 0.0 < altitude < DEPTH_PNG_MAX_M):
+            raise ValueError(f"TownConfig.aerial_altitude must be a positive number of metres below {DEPTH_PNG_MAX_M:.1f}, got {altitude!r}")
         headings = self.rig_headings
         if not (isinstance(headings, tuple) and headings and all(isinstance(h, (int, float, np.integer, np.floating)) and math.isfinite(h) and -180.0 <= h <= 180.0 for h in headings)):
             raise ValueError(f"TownConfig.rig_headings must be a non-empty tuple of headings in degrees within [-180, 180], got {headings!r}")
@@ -211,6 +222,7 @@ class TownConfig:
         values = asdict(self)
         values["camera_height"] = list(self.camera_height)
         values["rig_headings"] = [float(h) for h in self.rig_headings]
+        values["aerial_altitude"] = float(self.aerial_altitude)
         return values
 
     @classmethod
@@ -892,7 +904,10 @@ def _walk_segments(town: Town) -> List[Tuple[np.ndarray, np.ndarray]]:
 def town_camera_poses(town: Town) -> np.ndarray:
     """[N, 4, 4] camera-to-world poses (OpenGL axes), in frame order, of the town's capture
     (:attr:`TownConfig.capture`)."""
-    return _rig_poses(town) if town.config.capture == "rig" else _walk_poses(town)
+    capture = town.config.capture
+    if capture == "aerial":
+        return _aerial_poses(town)
+    return _rig_poses(town) if capture == "rig" else _walk_poses(town)
 
 
 def _street_positions(town: Town, arc: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
@@ -969,6 +984,69 @@ def _walk_poses(town: Town) -> np.ndarray:
         yaw = walk_yaw + math.radians(offset + yaw_jitter[k])
         pitch = math.radians(pitch_side[k] if abs(offset) == 90.0 else pitch_forward[k])
         poses[k] = _camera_to_world(np.array([xy[0], xy[1], heights[k]]), yaw, pitch)
+    return poses
+
+
+#: ``aerial``: how far each frame's optical axis leans forward from the vertical (degrees, uniform
+#: in this range). Always forward: the cameras' mean "up" then points up, which nerfstudio's
+#: default orientation (``--orientation-method up``) needs; with no lean, or a lean either way,
+#: the back-and-forth flight lines' "up" vectors cancel and the town would come out tilted.
+AERIAL_TILT_DEG: Tuple[float, float] = (6.0, 14.0)
+#: ``aerial``: the least height above the tallest roof (metres).
+AERIAL_CLEARANCE_M: float = 2.0
+
+
+def _aerial_poses(town: Town) -> np.ndarray:
+    """The ``aerial`` capture: a drone flies parallel flight lines along x over the whole town (its
+    ring included), alternating direction (an even number of lines, so as many frames fly each
+    way), lines at most half a footprint apart (50 % side overlap or more), with
+    ``num_images`` frames evenly spread along the whole flight (frames are numbered in flight order,
+    so a held-out frame lies between training frames a few metres away). Each camera's image rows
+    run across the flight line; its axis leans forward from the vertical by ``AERIAL_TILT_DEG``;
+    altitude jitters by 0.5 m and heading by 3 degrees.
+
+    Raises:
+        ValueError: when the altitude does not clear the tallest roof by ``AERIAL_CLEARANCE_M``, or
+            when a ground pixel would lie beyond the depth PNGs' range (both name the altitude
+            that would do).
+    """
+    config = town.config
+    altitude = float(config.aerial_altitude)
+    tallest = float(town.hi[:, 2].max()) if town.num_buildings else 0.0
+    if altitude - 0.5 < tallest + AERIAL_CLEARANCE_M:
+        raise ValueError(
+            f"TownConfig.aerial_altitude {altitude:g} m does not clear this town's tallest roof ({tallest:.1f} m) by "
+            f"{AERIAL_CLEARANCE_M:g} m; fly at {math.ceil(tallest + AERIAL_CLEARANCE_M + 0.5):g} m or more"
+        )
+    rng = np.random.default_rng([config.seed, 0xAE21])
+    half_x = math.tan(math.radians(config.fov_x_deg) / 2.0)
+    half_y = half_x * config.height / config.width
+    # The deepest ground pixel: an image corner on the side the axis leans to, at the highest jitter.
+    tilt = math.radians(AERIAL_TILT_DEG[1])
+    corner_down = (math.cos(tilt) - half_y * math.sin(tilt))  # -z of the unnormalised corner ray (z = -1 forward)
+    deepest = (altitude + 0.5) / corner_down if corner_down > 0 else math.inf
+    if not deepest <= DEPTH_PNG_MAX_M:
+        limit = DEPTH_PNG_MAX_M * corner_down - 0.5
+        raise ValueError(
+            f"TownConfig.aerial_altitude {altitude:g} m puts ground pixels {deepest:.1f} m deep, beyond the depth PNGs' "
+            f"{DEPTH_PNG_MAX_M:.1f} m; fly at {limit:.1f} m or less (or narrow the field of view)"
+        )
+    across = 2.0 * altitude * half_x  # the footprint across the flight line (image rows run across it)
+    (x0, x1), (y0, y1) = (float(-config.extent[0] / 2.0), float(config.extent[0] / 2.0)), (float(-config.extent[1] / 2.0), float(config.extent[1] / 2.0))
+    num_lines = 2 * max(1, math.ceil((y1 - y0) / across))
+    line_y = y0 + (np.arange(num_lines) + 0.5) * ((y1 - y0) / num_lines)
+    length = x1 - x0
+    arc = (np.arange(config.num_images) + 0.5) * (num_lines * length / config.num_images)
+    line = np.minimum((arc // length).astype(np.int64), num_lines - 1)
+    along = arc - line * length
+    forward = line % 2 == 0
+    x = np.where(forward, x0 + along, x1 - along)
+    yaw = np.where(forward, 0.0, math.pi) + np.radians(rng.normal(0.0, 3.0, size=config.num_images))
+    lean = np.radians(rng.uniform(*AERIAL_TILT_DEG, size=config.num_images))
+    z = altitude + rng.uniform(-0.5, 0.5, size=config.num_images)
+    poses = np.empty((config.num_images, 4, 4))
+    for k in range(config.num_images):
+        poses[k] = _camera_to_world(np.array([x[k], line_y[line[k]], z[k]]), float(yaw[k]), -0.5 * math.pi + float(lean[k]))
     return poses
 
 
@@ -1187,10 +1265,10 @@ def write_town(out_dir: Path, config: Optional[TownConfig] = None, progress: boo
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise ValueError(f"write_town: workers must be a positive integer, got {workers!r}")
     out_dir = Path(out_dir)
+    town = build_town(config)
+    poses = town_camera_poses(town)  # raises on a capture that cannot be flown, before anything is written
     _prepare_output(out_dir, overwrite)
     _keep_freed_memory()
-    town = build_town(config)
-    poses = town_camera_poses(town)
     names = _frame_names(config.num_images)
     bar = _Progress(config.num_images, f"Rendering the town ({config.num_images} frames)", progress)
     try:

@@ -72,9 +72,11 @@ def build_parser() -> argparse.ArgumentParser:
     town.add_argument("--street-width", type=_positive_float, default=None, help="building line to building line in metres (default 14)")
     town.add_argument("--road-width", type=_positive_float, default=None, help="asphalt width in metres (default 8, or street width - 6 for narrower streets)")
     town.add_argument("--fov", type=_positive_float, default=None, help="horizontal field of view in degrees (default 45)")
-    town.add_argument("--capture", choices=("rig", "walk"), default=None,
+    town.add_argument("--capture", choices=("rig", "walk", "aerial"), default=None,
                       help="rig: a vehicle's cameras take a frame each at evenly spaced stops (Block-NeRF's capture, default); "
-                           "walk: one frame per position with a random heading (generator version 1's capture)")
+                           "walk: one frame per position with a random heading (generator version 1's capture); "
+                           "aerial: a drone flies parallel lines over the town looking down (a block's frames see mostly its own part)")
+    town.add_argument("--aerial-altitude", type=_positive_float, default=None, help="aerial only: flight altitude in metres (default 55)")
     town.add_argument("--rig-headings", type=float, nargs="+", default=None, metavar="DEG",
                       help="rig cameras' headings in degrees from the driving direction, positive to the left (default 30 -30)")
     town.add_argument("--supersample", type=_positive_int, default=None, help="colour samples per pixel along each axis (default 1)")
@@ -103,6 +105,11 @@ def _check_output(parser: argparse.ArgumentParser, output: Path, overwrite: bool
         parser.error(f"--output {output} cannot be created: {parent} is not a writable folder")
 
 
+def _option_message(error: ValueError) -> str:
+    """``error``'s message naming the command-line option, not the TownConfig field."""
+    return re.sub(r"TownConfig\.(\w+)", lambda m: "--" + _OPTION.get(m.group(1), m.group(1)).replace("_", "-"), str(error))
+
+
 def _town(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
     from scalar_nerfstudio.data.town_scene import TownConfig, blocks_for_extent, build_town, town_camera_poses, write_town
 
@@ -115,6 +122,8 @@ def _town(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
         options["capture"] = args.capture
     if args.rig_headings is not None:
         options["rig_headings"] = tuple(args.rig_headings)
+    if args.aerial_altitude is not None:
+        options["aerial_altitude"] = args.aerial_altitude
     if args.street_width is not None and args.road_width is None:
         options["road_width"] = max(2.0, min(TownConfig.road_width, args.street_width - 6.0))
     if args.extent is not None:
@@ -128,15 +137,16 @@ def _town(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
         options["blocks_y"] = args.blocks_y
     try:
         config = TownConfig(seed=args.seed, **options)
-    except ValueError as error:  # name the command-line option, not the dataclass field
-        message = re.sub(r"TownConfig\.(\w+)", lambda m: "--" + _OPTION.get(m.group(1), m.group(1)).replace("_", "-"), str(error))
-        parser.error(message)
+    except ValueError as error:
+        parser.error(_option_message(error))
     _check_output(parser, args.output, args.overwrite)
     start = time.perf_counter()
     try:
         path = write_town(args.output, config, progress=not args.quiet, overwrite=args.overwrite, workers=args.workers)
     except (FileExistsError, PermissionError) as error:
         parser.error(str(error))
+    except ValueError as error:  # a capture that cannot be flown over this town (nothing written)
+        parser.error(_option_message(error))
     seconds = time.perf_counter() - start
     if not args.quiet:
         town = build_town(config)
@@ -167,7 +177,7 @@ def _automatic_blocks_line(config, poses) -> str:
 def _courtyard(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
     from scalar_nerfstudio.data.synthetic_scene import write_scene
 
-    town_only = [f"--{name.replace('_', '-')}" for name in ("blocks_x", "blocks_y", "extent", "block_size", "street_width", "road_width", "fov", "supersample", "capture", "rig_headings")
+    town_only = [f"--{name.replace('_', '-')}" for name in ("blocks_x", "blocks_y", "extent", "block_size", "street_width", "road_width", "fov", "supersample", "capture", "rig_headings", "aerial_altitude")
                  if getattr(args, name) is not None]
     if town_only:
         parser.error(f"{', '.join(town_only)}: only for --scene town")
