@@ -1032,7 +1032,8 @@ def _aerial_poses(town: Town) -> np.ndarray:
             f"{DEPTH_PNG_MAX_M:.1f} m; fly at {limit:.1f} m or less (or narrow the field of view)"
         )
     across = 2.0 * altitude * half_x  # the footprint across the flight line (image rows run across it)
-    (x0, x1), (y0, y1) = (float(-config.extent[0] / 2.0), float(config.extent[0] / 2.0)), (float(-config.extent[1] / 2.0), float(config.extent[1] / 2.0))
+    size_x, size_y = config.extent  # the town is centred on the origin
+    x0, x1, y0, y1 = -size_x / 2.0, size_x / 2.0, -size_y / 2.0, size_y / 2.0
     num_lines = 2 * max(1, math.ceil((y1 - y0) / across))
     line_y = y0 + (np.arange(num_lines) + 0.5) * ((y1 - y0) / num_lines)
     length = x1 - x0
