@@ -6,6 +6,8 @@ Scenes:
              K > 1, so scalar-nerf splits it into blocks (docs/town.md: on 8 workers, blocks
              of 2^12 beat one 2^12 model on the same schedule by +0.5 to +0.7 dB, and draw
              with one of 2^14)
+             (--capture aerial: a drone's survey looking down, where a block's frames see
+             mostly its own part of the town and blocks pay off, docs/town.md)
   courtyard  the small courtyard of scalar-nerf-demo (transforms.json, images/)
 
 Train on it with every 8th frame of the drive held out:
