@@ -7,7 +7,8 @@ Scenes:
              of 2^12 beat one 2^12 model on the same schedule by +0.5 to +0.7 dB, and draw
              with one of 2^14)
              (--capture aerial: a drone's survey looking down, where a block's frames see
-             mostly its own part of the town and blocks pay off, docs/town.md)
+             mostly its own part of the town: one table is further short there and blocks
+             gain most, +0.7 to +1.0 dB over it on 8 workers, docs/town.md)
   courtyard  the small courtyard of scalar-nerf-demo (transforms.json, images/)
 
 Train on it with every 8th frame of the drive held out:
