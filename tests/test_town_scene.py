@@ -580,6 +580,7 @@ def test_cli_writes_a_town_and_a_courtyard(tmp_path: Path) -> None:
         (["--scene", "courtyard", "--blocks-x", "2"], "only for --scene town"),
         (["--scene", "courtyard", "--capture", "walk"], "only for --scene town"),
         (["--scene", "courtyard", "--aerial-altitude", "50"], "only for --scene town"),
+        (["--aerial-altitude", "56"], "only with --capture aerial"),
         (["--rig-headings", "200"], "--rig-headings"),
         (["--capture", "drone"], "--capture"),
         (["NON_EMPTY"], "not empty"),

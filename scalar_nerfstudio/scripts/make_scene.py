@@ -126,6 +126,8 @@ def _town(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
     if args.rig_headings is not None:
         options["rig_headings"] = tuple(args.rig_headings)
     if args.aerial_altitude is not None:
+        if args.capture != "aerial":
+            parser.error("--aerial-altitude: only with --capture aerial")
         options["aerial_altitude"] = args.aerial_altitude
     if args.street_width is not None and args.road_width is None:
         options["road_width"] = max(2.0, min(TownConfig.road_width, args.street_width - 6.0))
