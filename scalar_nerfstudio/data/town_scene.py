@@ -994,6 +994,8 @@ def _walk_poses(town: Town) -> np.ndarray:
 AERIAL_TILT_DEG: Tuple[float, float] = (6.0, 14.0)
 #: ``aerial``: the least height above the tallest roof (metres).
 AERIAL_CLEARANCE_M: float = 2.0
+#: ``aerial``: each frame's altitude is uniform within this many metres of ``aerial_altitude``.
+AERIAL_ALTITUDE_JITTER_M: float = 0.5
 
 
 def _aerial_poses(town: Town) -> np.ndarray:
@@ -1003,7 +1005,7 @@ def _aerial_poses(town: Town) -> np.ndarray:
     ``num_images`` frames evenly spread along the whole flight (frames are numbered in flight order,
     so a held-out frame lies between training frames a few metres away). Each camera's image rows
     run across the flight line; its axis leans forward from the vertical by ``AERIAL_TILT_DEG``;
-    altitude jitters by 0.5 m and heading by 3 degrees.
+    altitude jitters by ``AERIAL_ALTITUDE_JITTER_M`` and heading by 3 degrees.
 
     Raises:
         ValueError: when the altitude does not clear the tallest roof by ``AERIAL_CLEARANCE_M``, or
@@ -1012,11 +1014,12 @@ def _aerial_poses(town: Town) -> np.ndarray:
     """
     config = town.config
     altitude = float(config.aerial_altitude)
+    lowest, highest = altitude - AERIAL_ALTITUDE_JITTER_M, altitude + AERIAL_ALTITUDE_JITTER_M
     tallest = float(town.hi[:, 2].max()) if town.num_buildings else 0.0
-    if altitude - 0.5 < tallest + AERIAL_CLEARANCE_M:
+    if lowest < tallest + AERIAL_CLEARANCE_M:
         raise ValueError(
             f"TownConfig.aerial_altitude {altitude:g} m does not clear this town's tallest roof ({tallest:.1f} m) by "
-            f"{AERIAL_CLEARANCE_M:g} m; fly at {math.ceil(tallest + AERIAL_CLEARANCE_M + 0.5):g} m or more"
+            f"{AERIAL_CLEARANCE_M:g} m; fly at {math.ceil(tallest + AERIAL_CLEARANCE_M + AERIAL_ALTITUDE_JITTER_M):g} m or more"
         )
     rng = np.random.default_rng([config.seed, 0xAE21])
     half_x = math.tan(math.radians(config.fov_x_deg) / 2.0)
@@ -1024,27 +1027,25 @@ def _aerial_poses(town: Town) -> np.ndarray:
     # The deepest ground pixel: an image corner on the side the axis leans to, at the highest jitter.
     tilt = math.radians(AERIAL_TILT_DEG[1])
     corner_down = (math.cos(tilt) - half_y * math.sin(tilt))  # -z of the unnormalised corner ray (z = -1 forward)
-    deepest = (altitude + 0.5) / corner_down if corner_down > 0 else math.inf
+    deepest = highest / corner_down if corner_down > 0 else math.inf
     if not deepest <= DEPTH_PNG_MAX_M:
-        limit = DEPTH_PNG_MAX_M * corner_down - 0.5
+        limit = DEPTH_PNG_MAX_M * corner_down - AERIAL_ALTITUDE_JITTER_M
         raise ValueError(
             f"TownConfig.aerial_altitude {altitude:g} m puts ground pixels {deepest:.1f} m deep, beyond the depth PNGs' "
             f"{DEPTH_PNG_MAX_M:.1f} m; fly at {limit:.1f} m or less (or narrow the field of view)"
         )
     across = 2.0 * altitude * half_x  # the footprint across the flight line (image rows run across it)
-    size_x, size_y = config.extent  # the town is centred on the origin
-    x0, x1, y0, y1 = -size_x / 2.0, size_x / 2.0, -size_y / 2.0, size_y / 2.0
-    num_lines = 2 * max(1, math.ceil((y1 - y0) / across))
-    line_y = y0 + (np.arange(num_lines) + 0.5) * ((y1 - y0) / num_lines)
-    length = x1 - x0
+    length, width = config.extent  # the town is centred on the origin; lines run along x
+    num_lines = 2 * max(1, math.ceil(width / across))
+    line_y = -width / 2.0 + (np.arange(num_lines) + 0.5) * (width / num_lines)
     arc = (np.arange(config.num_images) + 0.5) * (num_lines * length / config.num_images)
     line = np.minimum((arc // length).astype(np.int64), num_lines - 1)
     along = arc - line * length
     forward = line % 2 == 0
-    x = np.where(forward, x0 + along, x1 - along)
+    x = np.where(forward, along - length / 2.0, length / 2.0 - along)
     yaw = np.where(forward, 0.0, math.pi) + np.radians(rng.normal(0.0, 3.0, size=config.num_images))
     lean = np.radians(rng.uniform(*AERIAL_TILT_DEG, size=config.num_images))
-    z = altitude + rng.uniform(-0.5, 0.5, size=config.num_images)
+    z = rng.uniform(lowest, highest, size=config.num_images)
     poses = np.empty((config.num_images, 4, 4))
     for k in range(config.num_images):
         poses[k] = _camera_to_world(np.array([x[k], line_y[line[k]], z[k]]), float(yaw[k]), -0.5 * math.pi + float(lean[k]))
