@@ -25,7 +25,8 @@ def test_quick_benchmark_end_to_end(tmp_path: Path) -> None:
     synthetic scene: table, JSON, curves and the three plots."""
     output = tmp_path / "bench"
     result = subprocess.run(
-        ["scalar-nerf-benchmark", "--quick", "--output-dir", str(output), "--variants", "ngp19", "scalar", "nerfacto"],
+        ["scalar-nerf-benchmark", "--quick", "--output-dir", str(output), "--variants", "ngp19", "scalar", "nerfacto",
+         "--no-match-wall-clock"],  # (the one-model run trained again for the blocks' wall-clock: tested below)
         capture_output=True, text=True, timeout=900,
     )
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
@@ -225,6 +226,65 @@ def test_equal_wall_clock_says_when_a_one_model_run_ended_before_that_time() -> 
     table = [{"label": "SCALAR", "fusion": "nearest", "psnr": 21.0, "parallel_train_s": 22.0}]
     lines = "\n".join(equal_wall_clock({"ngp19": {"curve": curve}}, table, log2_table=12))
     assert "| NGP_12 (one model, 2^12) at the same wall-clock | - | 22 | 20.00: it ended earlier, at 20 s (step 200) |" in lines
+
+
+def test_a_one_model_run_that_ended_before_the_blocks_is_trained_again_for_their_wall_clock(tmp_path: Path) -> None:
+    """NGP_T ended at 119 s, the blocks on K workers at 140 s: NGP_T trains again, from the start, for
+    the steps its pace fits in 140 s (its learning rate decays over them), evaluated at its end; a run
+    that ended within 3 % of that time, or --no-match-wall-clock, trains nothing more."""
+    from scalar_nerfstudio.benchmarking.variants import wall_clock_variants
+
+    config = BenchmarkConfig(data=tmp_path, global_steps=900, block_steps=175, num_blocks=4, log2_table=10, variants=("ngp19", "ngp21"))
+    variants = plan(config)[0]
+    results = {
+        "ngp19": {"steps": 1600, "train_s": 119.0}, "ngp21": {"steps": 1600, "train_s": 149.0},
+        "global": {"steps": 900, "train_s": 63.0}, "auto-parallel": {"steps": 7700, "train_s": 658.0, "parallel_train_s": 140.0},
+    }
+    (again, note), = wall_clock_variants(config, variants, results)
+    first = {v.name: v for v in variants}["ngp19"]
+    assert again.name == "ngp19-wall-clock" and again.method == first.method and again.eval_every == 0
+    assert again.overrides == {**first.overrides, "pipeline.global_steps": 1883}  # ceil(140 s x 1600 / 119 s)
+    assert "1883 steps" in note and "119 s" in note and "140 s" in note
+    results["ngp19"]["train_s"] = 136.0  # within 3 % of 140 s: read at its end
+    assert wall_clock_variants(config, variants, results) == []
+    results["ngp19"]["train_s"] = 119.0
+    config.match_wall_clock = False
+    assert wall_clock_variants(config, variants, results) == []
+    config.match_wall_clock = True
+    del results["auto-parallel"]["parallel_train_s"]  # no block variant on K workers: nothing to match
+    assert wall_clock_variants(config, variants, results) == []
+
+
+def test_the_benchmark_trains_the_wall_clock_run_after_the_others_and_reports_it(tmp_path: Path) -> None:
+    """The schedule runs the extra one-model run once every planned variant has run, records its note,
+    and the equal wall-clock table reads that run's end (not the first run's) at the blocks' time."""
+    from scalar_nerfstudio.benchmarking import schedule
+    from scalar_nerfstudio.benchmarking.report import equal_wall_clock, rows
+
+    config = BenchmarkConfig(data=tmp_path, output_dir=tmp_path / "bench", log2_table=10, variants=("ngp19",))
+    (tmp_path / "bench" / "runs").mkdir(parents=True)
+    variants = plan(config)[0]
+    parallel = {"steps": 7700, "train_s": 658.0, "parallel_train_s": 140.0, "curve": [], "final": {"psnr": 19.14}}
+
+    def fake_run(config, variant, runs, results, progress, task):
+        if variant.name == "ngp19":
+            results["auto-parallel"] = parallel  # as if a block variant had run before it
+            return {"steps": 1600, "train_s": 119.0, "curve": [{"step": 1600, "train_s": 119.0, "psnr": 17.65}], "final": {"psnr": 17.65}}
+        assert variant.name == "ngp19-wall-clock" and variant.overrides["pipeline.global_steps"] == 1883
+        return {"steps": 1883, "train_s": 141.0, "curve": [{"step": 1883, "train_s": 141.0, "psnr": 18.11}], "final": {"psnr": 18.11}}
+
+    notes: dict = {}
+    with mock.patch.object(schedule, "run_variant", side_effect=fake_run) as run:
+        results = schedule.run_variants(config, variants, notes)
+    assert [c.args[1].name for c in run.call_args_list] == ["ngp19", "ngp19-wall-clock"]
+    assert "1883 steps" in notes["ngp19-wall-clock"]
+    table = [{"label": "blocks", "fusion": "nearest-guarded", "psnr": 19.14, "parallel_train_s": 140.0}]
+    lines = "\n".join(equal_wall_clock(results, table, log2_table=10))
+    assert "| NGP_10 (one model, 2^10) at the same wall-clock | - | 140 | **18.11**: trained again for this wall-clock, 1883 steps in 141 s |" in lines
+    results["ngp19-wall-clock"].update({"fusions": None, "train_rays_per_s": 1.0, "parameters": 1, "peak_rss_mib": 1.0})
+    results["ngp19-wall-clock"]["final"].update({"ssim": 0.4, "render_ms_per_image": 1.0})
+    labelled = {r["variant"]: r["label"] for r in rows({"ngp19-wall-clock": results["ngp19-wall-clock"]}, log2_table=10)}
+    assert labelled == {"ngp19-wall-clock": "NGP_10 (one model, 2^10), trained for the blocks' wall-clock"}
 
 
 def test_parallel_budget_gives_every_block_the_steps_one_model_trains_after_the_global_phase(tmp_path: Path) -> None:

@@ -13,9 +13,9 @@ import os
 import subprocess
 import sys
 from pathlib import Path
-from typing import Any, Dict, List, Tuple
+from typing import Any, Dict, List, Optional, Tuple
 
-from scalar_nerfstudio.benchmarking.variants import BenchmarkConfig, Variant, check_options, plan, use_quick_budgets
+from scalar_nerfstudio.benchmarking.variants import BenchmarkConfig, Variant, check_options, plan, use_quick_budgets, wall_clock_variants
 
 __all__ = ["RUNNER_MODULE", "prepare", "run_variant", "run_variants", "variant_spec", "with_base_phase"]
 
@@ -115,9 +115,11 @@ def with_base_phase(result: Dict[str, Any], base: Dict[str, Any]) -> Dict[str, A
     return result
 
 
-def run_variants(config: BenchmarkConfig, variants: List[Variant]) -> Dict[str, Dict[str, Any]]:
+def run_variants(config: BenchmarkConfig, variants: List[Variant], notes: Optional[Dict[str, str]] = None) -> Dict[str, Dict[str, Any]]:
     """Every variant in order under ``config.output_dir/runs``, with a progress bar each; their results
-    by name. nerfacto gets the wall-clock of ``scalar`` (else twice the global phase's)."""
+    by name. nerfacto gets the wall-clock of ``scalar`` (else twice the global phase's). Then the one-model
+    runs that ended before the blocks' wall-clock on K workers train again for it
+    (:func:`.variants.wall_clock_variants`); their notes are added to ``notes``."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     runs = config.output_dir / "runs"
@@ -130,4 +132,10 @@ def run_variants(config: BenchmarkConfig, variants: List[Variant]) -> Dict[str, 
                 variant.time_limit_s = results["scalar"]["train_s"] if "scalar" in results else results["global"]["train_s"] * 2
             results[variant.name] = run_variant(config, variant, runs, results, progress, tasks[variant.name])
             progress.update(tasks[variant.name], completed=progress.tasks[tasks[variant.name]].total)
+        for variant, note in wall_clock_variants(config, variants, results):
+            task = progress.add_task(variant.name, total=1.0)
+            results[variant.name] = run_variant(config, variant, runs, results, progress, task)
+            progress.update(task, completed=progress.tasks[task].total)
+            if notes is not None:
+                notes[variant.name] = note
     return results

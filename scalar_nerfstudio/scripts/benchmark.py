@@ -43,7 +43,7 @@ def main(config: BenchmarkConfig) -> Dict[str, Any]:
     probe_size = {"num_points": 1 << 14, "log2_hashmap_size": 14, "repeats": 2} if config.quick else {}
     machine_probe = {"before": hash_grid_speed(**probe_size)}
     started = time.time()
-    results = run_variants(config, variants)
+    results = run_variants(config, variants, notes)
     machine_probe["after"] = hash_grid_speed(**probe_size)
     report = write_report(config, results, notes, command, started, machine_probe)
     print(results_table_text(output_dir))
