@@ -4,7 +4,7 @@ A camera render on the CPU allocates and frees hundreds of megabytes of per-samp
 chunk (4096 rays x 64 samples at a time). glibc's malloc keeps freed blocks in its arenas, and its
 mmap threshold rises after the first large frees, so later large tensors come from the arenas too.
 The freed space is fragmented between images: the process's resident memory climbed by about
-300 MiB per 256 x 192 eval image and passed 23 GiB in the second evaluation of 134 views of the
+200-300 MiB per 256 x 192 eval image and passed 23 GiB in the second evaluation of 134 views of the
 aerial 4 x 4 town, where the kernel killed it (2026-11-27). ``malloc_trim(0)`` returns the free
 pages. Doing it after every image costs about a third of the render time (the next image faults its
 pages in again), so :class:`HeapRelease` does it only once resident memory has grown by
@@ -44,8 +44,8 @@ def _malloc_trim() -> Optional[Callable[[int], int]]:
 
 def release_freed_memory() -> bool:
     """Return the pages of memory that has been freed to the operating system (glibc's
-    ``malloc_trim(0)``); True when some were returned, False when none were or where glibc is absent.
-    Costs about a millisecond (a walk over malloc's arenas); live tensors are not touched."""
+    ``malloc_trim(0)``, a walk over malloc's arenas); True when some were returned, False when none
+    were or where glibc is absent. Live memory is not touched."""
     trim = _malloc_trim()
     return bool(trim(0)) if trim is not None else False
 
@@ -61,7 +61,7 @@ def resident_mib() -> float:
 class HeapRelease:
     """Calls :func:`release_freed_memory` once resident memory has grown by ``growth_mib`` since the
     last release (or since the first call). Call it after each large transient allocation, e.g. a
-    camera render; it costs a read of the process's memory size (tens of microseconds) otherwise."""
+    camera render; between releases it only reads the process's resident size."""
 
     growth_mib: float = RELEASE_AFTER_GROWTH_MIB
     baseline_mib: Optional[float] = None

@@ -19,10 +19,10 @@ from nerfstudio.models.base_model import Model
 from torch import Tensor, nn
 from torch.nn import Parameter
 
-from scalar_nerfstudio.engine.memory import HeapRelease
 from scalar_nerfstudio.blocks.capacity import BlockCapacity
 from scalar_nerfstudio.blocks.observation import observed_at
 from scalar_nerfstudio.blocks.split import Block, BlockSplit
+from scalar_nerfstudio.engine.memory import HeapRelease
 from scalar_nerfstudio.fusion import (
     FUSED_KEYS,
     ParsedFusionMode,
