@@ -232,7 +232,10 @@ class Decoder(nn.Module):
             return fused_mlp(mlp, inputs)
         if not self.fused_cpu_inference or torch.is_grad_enabled() or inputs.device.type != "cpu":
             return mlp(inputs)
-        return run_mlp_fused(mlp, inputs, cpu_autocast_dtype() or inputs.dtype)
+        dtype = cpu_autocast_dtype() or inputs.dtype
+        if dtype == torch.bfloat16 and not cpu_bfloat16_is_fast():  # oneDNN has no bfloat16 inner product on this CPU
+            return mlp(inputs)
+        return run_mlp_fused(mlp, inputs, dtype)
 
 
 def cpu_bfloat16_is_fast() -> bool:
