@@ -13,6 +13,7 @@ every view, ``default`` once resident memory has grown by 2 GiB since the last r
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import resource
 import subprocess
@@ -27,22 +28,21 @@ RELEASES = ("off", "every", "default")
 
 def measure(config: Path, views: int, release: str) -> dict:
     """One configuration, in this process."""
-    import psutil
     import torch
     from nerfstudio.utils.eval_utils import eval_setup
 
-    from scalar_nerfstudio.engine.memory import HeapRelease
+    from scalar_nerfstudio.engine.memory import HeapRelease, resident_mib
 
     _, pipeline, _, _ = eval_setup(config, test_mode="test")
     pipeline.eval()
-    loaded_mib = psutil.Process().memory_info().rss / 2**20
+    loaded_mib = resident_mib()
     loader = pipeline.datamanager.fixed_indices_eval_dataloader
     count = min(views, len(loader))
     if release == "every":
         pipeline.model.heap_release = HeapRelease(growth_mib=0.0)
     never = mock.patch.object(HeapRelease, "__call__", lambda self: False)
     start = time.perf_counter()
-    with torch.no_grad(), (never if release == "off" else mock.MagicMock()):
+    with torch.no_grad(), (never if release == "off" else contextlib.nullcontext()):
         for index in range(count):
             camera, batch = loader.get_camera(loader.image_indices[index])
             outputs = pipeline.model.get_outputs_for_camera(camera=camera)
@@ -52,7 +52,7 @@ def measure(config: Path, views: int, release: str) -> dict:
     return {
         "release": release, "views": count, "loaded_rss_mib": round(loaded_mib),
         "peak_rss_mib": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024),
-        "end_rss_mib": round(psutil.Process().memory_info().rss / 2**20), "ms_per_view": round(1000 * seconds / max(count, 1)),
+        "end_rss_mib": round(resident_mib()), "ms_per_view": round(1000 * seconds / max(count, 1)),
     }
 
 

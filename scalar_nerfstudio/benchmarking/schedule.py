@@ -125,17 +125,19 @@ def run_variants(config: BenchmarkConfig, variants: List[Variant], notes: Option
     runs = config.output_dir / "runs"
     results: Dict[str, Dict[str, Any]] = {}
     with Progress(TextColumn("{task.description:<16}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn()) as progress:
-        tasks = {v.name: progress.add_task(v.name, total=1.0, start=False) for v in variants}
-        for variant in variants:
-            progress.start_task(tasks[variant.name])
-            if variant.name == "nerfacto":
-                variant.time_limit_s = results["scalar"]["train_s"] if "scalar" in results else results["global"]["train_s"] * 2
-            results[variant.name] = run_variant(config, variant, runs, results, progress, tasks[variant.name])
-            progress.update(tasks[variant.name], completed=progress.tasks[tasks[variant.name]].total)
-        for variant, note in wall_clock_variants(config, variants, results):
-            task = progress.add_task(variant.name, total=1.0)
+
+        def train(variant: Variant, task) -> None:
+            progress.start_task(task)
             results[variant.name] = run_variant(config, variant, runs, results, progress, task)
             progress.update(task, completed=progress.tasks[task].total)
+
+        tasks = {v.name: progress.add_task(v.name, total=1.0, start=False) for v in variants}
+        for variant in variants:
+            if variant.name == "nerfacto":
+                variant.time_limit_s = results["scalar"]["train_s"] if "scalar" in results else results["global"]["train_s"] * 2
+            train(variant, tasks[variant.name])
+        for variant, note in wall_clock_variants(config, variants, results):
+            train(variant, progress.add_task(variant.name, total=1.0, start=False))
             if notes is not None:
                 notes[variant.name] = note
     return results

@@ -227,7 +227,8 @@ class Decoder(nn.Module):
     def _mlp(self, mlp: nn.Sequential, inputs: Tensor) -> Tensor:
         """``mlp(inputs)``. On the CPU under bfloat16 autocast with autograd, through :func:`fused_mlp`
         (float32 result) where enabled; without autograd on the CPU, through :func:`run_mlp_fused` in
-        the precision autocast asks for (float32 outside autocast)."""
+        the precision autocast asks for (float32 outside autocast), except bfloat16 on a CPU without
+        native bfloat16 products (:func:`cpu_bfloat16_is_fast`), where oneDNN has no such kernel."""
         if self._fused_training_applies(inputs):
             return fused_mlp(mlp, inputs)
         if not self.fused_cpu_inference or torch.is_grad_enabled() or inputs.device.type != "cpu":
