@@ -99,6 +99,23 @@ def test_plan_and_budgets(tmp_path: Path) -> None:
         plan(BenchmarkConfig(data=tmp_path, variants=("ngp18",)))
 
 
+def test_fusions_option_sets_the_modes_every_block_variant_is_evaluated_with(tmp_path: Path) -> None:
+    """``--fusions`` replaces each block variant's list of fusions (its first is the run's); the one-model
+    runs and the global phase keep rendering one model; a mode that does not exist is refused by name."""
+    config = BenchmarkConfig(data=tmp_path, variants=("ngp19", "scalar", "scalar-wo-sd"), fusions=("nearest-guarded", "global-only"))
+    by_name = {v.name: v for v in plan(config)[0]}
+    assert by_name["scalar"].fusions == by_name["scalar-wo-sd"].fusions == ["nearest-guarded", "global-only"]
+    assert by_name["ngp19"].fusions == by_name["global"].fusions == ["global"]
+    spec = variant_spec(config, by_name["scalar"], tmp_path, {"global": {"checkpoint": "g.ckpt"}})
+    assert spec["fusions"] == ["nearest-guarded", "global-only"]
+    default = {v.name: v for v in plan(BenchmarkConfig(data=tmp_path, variants=("scalar",)))[0]}
+    assert default["scalar"].fusions == ["global", "surface", "idw", "nearest", "global-only"]
+    assert [v.fusions for v in plan(BenchmarkConfig(data=tmp_path, variants=("scalar",), fusions=("block:1",)))[0]][1] == ["block:1"]
+    for fusions, message in ((("nearest", "best"), "--fusions best: unknown fusion mode"), ((), "at least one fusion mode")):
+        with pytest.raises(SystemExit, match=message):
+            plan(BenchmarkConfig(data=tmp_path, variants=("scalar",), fusions=fusions))
+
+
 def test_pareto_front() -> None:
     rows = [
         {"psnr": 20.0, "parameters": 10, "train_s": 5},
@@ -363,6 +380,7 @@ def test_bad_benchmark_options_are_refused_before_anything_is_written(tmp_path: 
         (BenchmarkConfig(data=scene, output_dir=output, variants=("ngp18",)), "unknown variant"),
         (BenchmarkConfig(data=scene, output_dir=output, parallel_block_steps=-3), "--parallel-block-steps -3"),
         (BenchmarkConfig(data=scene, output_dir=output, decoder_width=0), "--decoder-width 0"),
+        (BenchmarkConfig(data=scene, output_dir=output, fusions=("guided",)), "--fusions guided"),
         (BenchmarkConfig(data=tmp_path / "missing", output_dir=output), "is not a scene folder"),
         (BenchmarkConfig(output_dir=output), "is not a scene folder"),
     ):

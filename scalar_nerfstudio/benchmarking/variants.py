@@ -32,6 +32,8 @@ Variants (same scene, same machine, same run; each trains in its own process):
 * ``nerfacto``: nerfstudio's nerfacto, torch implementation, for the wall-clock SCALAR-NeRF took.
   Its LPIPS needs downloaded AlexNet weights, so it is not computed for nerfacto.
 
+``--fusions`` replaces every block variant's list of fusions above (the first is the run's).
+
 Equal budgets: every SCALAR/NGP variant trains ``G + K B`` steps of the same ray batch; nerfacto
 trains for the same wall-clock as ``scalar`` (set when the schedule gets to it). The report also
 compares at equal wall-clock with K workers: a block variant's time with its blocks trained in
@@ -96,6 +98,12 @@ class BenchmarkConfig:
     2026-11-23 were measured with."""
     eval_every: int = 200
     """Evaluate every this many steps (plus at the end of each variant)."""
+    fusions: Optional[Tuple[str, ...]] = None
+    """Fusion modes every block variant is evaluated with at its end, in this order (the first is the one
+    its run renders with, and its curve's); default: each variant's own list (README, "Speed against error"). Each
+    mode is one more rendering of every held-out view, which on a large scene is much of a variant's
+    time (134 views at 256 x 192: 4-7 minutes on the 2-core machine); ``global-only`` reads the
+    global model alone."""
     match_wall_clock: bool = True
     """Train a one-model run (NGP_T, NGP_{T+2}) that ended before the blocks' wall-clock on K workers once
     more, for as many steps as fit in it (``<variant>-wall-clock``), so that equal wall-clock compares
@@ -146,6 +154,16 @@ def check_options(config: BenchmarkConfig) -> None:
     unknown = [v for v in config.variants if v not in VARIANTS]
     if unknown:
         raise SystemExit(f"scalar-nerf-benchmark: unknown variant(s) {unknown}; choose from {list(VARIANTS)}")
+    if config.fusions is not None:
+        from scalar_nerfstudio.fusion import FusionModeError, parse_fusion_mode
+
+        if not config.fusions:
+            raise SystemExit("scalar-nerf-benchmark: --fusions needs at least one fusion mode")
+        for mode in config.fusions:
+            try:
+                parse_fusion_mode(mode)
+            except FusionModeError as error:
+                raise SystemExit(f"scalar-nerf-benchmark: --fusions {mode}: {error}") from None
 
 
 def parallel_block_steps(config: BenchmarkConfig) -> int:
@@ -247,6 +265,10 @@ def plan(config: BenchmarkConfig) -> Tuple[List[Variant], Dict[str, str]]:
             if config.quick:
                 overrides.update({"pipeline.datamanager.train_num_rays_per_batch": 256, "pipeline.model.eval_num_rays_per_chunk": 4096})
             out.append(Variant(name, "nerfacto", overrides))
+    if config.fusions is not None:
+        for variant in out:
+            if variant.base is not None:  # the block variants; one-model runs render one model
+                variant.fusions = list(config.fusions)
     return out, notes
 
 
