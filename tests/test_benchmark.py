@@ -448,7 +448,7 @@ def test_train_vs_heldout_scores_held_out_views_as_ns_eval_does(full_run: Path, 
 def test_the_same_spec_trains_the_same_model_and_another_seed_another(scene: Path, tmp_path: Path) -> None:
     """A benchmark run is seeded as ns-train seeds its runs (``machine.seed``): the same spec gives the
     same held-out PSNR to the last bit, another seed another one. (Unseeded, two runs of one spec
-    differed by 0.7 dB.)"""
+    differed by 0.7 dB.) A spec whose fusions name a block the run lacks stops before training."""
     from scalar_nerfstudio.benchmarking.runner import run
 
     overrides = {
@@ -466,6 +466,14 @@ def test_the_same_spec_trains_the_same_model_and_another_seed_another(scene: Pat
 
     first, again, other = held_out_psnr("first", 42), held_out_psnr("again", 42), held_out_psnr("other", 7)
     assert first == again and other != first, (first, again, other)
+    # a fusion naming a block the run does not have is refused before its training, not after it
+    from scalar_nerfstudio.fusion import FusionModeError
+
+    spec = {"name": "bad", "method": "scalar-nerf", "data": str(scene), "downscale": 1, "eval_every": 0, "overrides": overrides,
+            "fusions": ["global", "block:1"], "output_dir": str(tmp_path / "bad"), "result": str(tmp_path / "bad.json")}
+    with pytest.raises(FusionModeError, match="block index out of range, there are 1 blocks"):
+        run(spec)
+    assert not (tmp_path / "bad.json").exists() and not list((tmp_path / "bad").rglob("*.ckpt"))
     config = BenchmarkConfig(data=tmp_path, variants=("ngp19", "auto"), seed=7)
     with mock.patch("scalar_nerfstudio.benchmarking.variants.auto_k", return_value=3):
         specs = [variant_spec(config, v, tmp_path, {"global": {"checkpoint": "g.ckpt"}}) for v in plan(config)[0]]

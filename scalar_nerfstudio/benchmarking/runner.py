@@ -27,6 +27,7 @@ from scalar_nerfstudio.atomic_io import atomic_write_text
 from scalar_nerfstudio.engine.device import resolve_machine
 from scalar_nerfstudio.engine.report import MIB, peak_memory_mib, tensor_bytes
 from scalar_nerfstudio.engine.timing import StepClock, time_train_iterations
+from scalar_nerfstudio.fusion import parse_fusion_mode
 
 
 def _disable_lpips() -> None:
@@ -147,6 +148,11 @@ def run(spec: Dict[str, Any]) -> Dict[str, Any]:
     config.set_timestamp()
     config.save_config()
     trainer = setup_trainer(config)
+    fusions = spec.get("fusions") or []
+    split = getattr(trainer.pipeline.model, "split", None)
+    if split is not None:  # a fusion naming a block this run does not have fails now, not after its training
+        for mode in fusions:
+            parse_fusion_mode(mode, split.num_blocks)
     save_checkpoint = trainer.save_checkpoint
     requested_saves: List[int] = []
     """Steps nerfstudio asked to save at: none is written inside the timed steps; the last one is
@@ -186,7 +192,6 @@ def run(spec: Dict[str, Any]) -> Dict[str, Any]:
     if spec.get("eval_at_end", True) and (not curve or curve[-1]["step"] != clock.steps):
         curve.append({"step": clock.steps, "train_s": clock.busy_s, **_evaluate(pipeline)})
     finals: Dict[str, Dict[str, float]] = {}
-    fusions = spec.get("fusions") or []
     for index, mode in enumerate(fusions):
         if index == 0:
             finals[mode] = {k: v for k, v in curve[-1].items() if k not in ("step", "train_s")}
