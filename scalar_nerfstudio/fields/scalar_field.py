@@ -6,6 +6,7 @@ model's decoder (fine-tuned, frozen or replaced), while the encoder is always th
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 from typing import Literal, Optional, Type
 
@@ -239,8 +240,10 @@ class Decoder(nn.Module):
         return run_mlp_fused(mlp, inputs, dtype)
 
 
+@functools.lru_cache(maxsize=1)
 def cpu_bfloat16_is_fast() -> bool:
-    """Whether this CPU has native bfloat16 matrix products (AVX512-BF16 / AMX through oneDNN)."""
+    """Whether this CPU has native bfloat16 matrix products (AVX512-BF16 / AMX through oneDNN). Asked
+    once per process: the decoder's inference asks it on every MLP call under bfloat16."""
     try:
         return bool(torch.backends.mkldnn.is_available() and torch.ops.mkldnn._is_mkldnn_bf16_supported())
     except (AttributeError, RuntimeError):
