@@ -304,6 +304,107 @@ def test_the_benchmark_trains_the_wall_clock_run_after_the_others_and_reports_it
     assert labelled == {"ngp19-wall-clock": "NGP_10 (one model, 2^10), trained for the blocks' wall-clock"}
 
 
+def test_a_wall_clock_run_that_ends_away_from_the_blocks_is_planned_again_from_its_own_pace(tmp_path: Path) -> None:
+    """The first rerun, planned from NGP_T's first pace, ends at 128 s of the blocks' 140 s (it ran
+    faster): a second run is planned from its own pace, ends at 139 s, and is the one read; the note
+    lists both. A run within 3 % is read at once; --wall-clock-tries 1 keeps the first rerun."""
+    from scalar_nerfstudio.benchmarking import schedule
+
+    config = BenchmarkConfig(data=tmp_path, output_dir=tmp_path / "bench", log2_table=10, variants=("ngp19",))
+    (tmp_path / "bench" / "runs").mkdir(parents=True)
+    variants = plan(config)[0]
+    parallel = {"steps": 7700, "train_s": 658.0, "parallel_train_s": 140.0, "curve": [], "final": {"psnr": 19.14}}
+    ends = {"ngp19-wall-clock": (1883, 128.0, 18.00), "ngp19-wall-clock-2": (2060, 139.0, 18.10)}
+
+    def fake_run(config, variant, runs, results, progress, task):
+        if variant.name == "ngp19":
+            results["auto-parallel"] = parallel
+            return {"name": "ngp19", "steps": 1600, "train_s": 119.0, "curve": [], "final": {"psnr": 17.65}}
+        steps, seconds, psnr = ends[variant.name]
+        assert variant.overrides["pipeline.global_steps"] == steps  # 1883 = ceil(140 x 1600 / 119); 2060 = ceil(140 x 1883 / 128)
+        return {"name": variant.name, "steps": steps, "train_s": seconds, "curve": [], "final": {"psnr": psnr}}
+
+    notes: dict = {}
+    with mock.patch.object(schedule, "run_variant", side_effect=fake_run) as run:
+        results = schedule.run_variants(config, variants, notes)
+    assert [c.args[1].name for c in run.call_args_list] == ["ngp19", "ngp19-wall-clock", "ngp19-wall-clock-2"]
+    assert results["ngp19-wall-clock"]["steps"] == 2060 and results["ngp19-wall-clock"]["final"]["psnr"] == 18.10
+    assert "ngp19-wall-clock-2" not in results
+    note = notes["ngp19-wall-clock"]
+    assert "1883 steps in 128 s, 18.00 dB" in note and "2060 steps in 139 s, 18.10 dB" in note and "read: ngp19-wall-clock-2" in note
+
+    ends["ngp19-wall-clock"] = (1883, 137.0, 18.05)  # within 3 % of 140 s: no second run
+    with mock.patch.object(schedule, "run_variant", side_effect=fake_run) as run:
+        results = schedule.run_variants(config, plan(config)[0], {})
+    assert [c.args[1].name for c in run.call_args_list] == ["ngp19", "ngp19-wall-clock"]
+
+    ends["ngp19-wall-clock"] = (1883, 128.0, 18.00)
+    config.wall_clock_tries = 1
+    with mock.patch.object(schedule, "run_variant", side_effect=fake_run) as run:
+        results = schedule.run_variants(config, plan(config)[0], {})
+    assert [c.args[1].name for c in run.call_args_list] == ["ngp19", "ngp19-wall-clock"]
+    assert results["ngp19-wall-clock"]["steps"] == 1883
+
+
+def test_the_wall_clock_runs_stop_at_the_tries_allowed_and_read_the_nearest() -> None:
+    """Three runs that all miss by more than 3 % (the machine's pace kept changing): no fourth, and
+    the one that ended nearest the blocks' wall-clock is read, whether it ended before or after it."""
+    from scalar_nerfstudio.benchmarking.variants import Variant, nearest_to_wall_clock, wall_clock_retry
+
+    config = BenchmarkConfig(wall_clock_tries=3)
+    first = Variant("ngp19-wall-clock", "scalar-nerf", {"pipeline.global_steps": 1915}, eval_every=0)
+    tried = [(first, {"steps": 1915, "train_s": 378.0, "final": {"psnr": 17.74}})]
+    second = wall_clock_retry(config, tried, 417.0)
+    assert second.name == "ngp19-wall-clock-2" and second.overrides["pipeline.global_steps"] == 2113  # ceil(417 x 1915 / 378)
+    assert second.eval_every == 0 and second.method == "scalar-nerf"
+    tried.append((second, {"steps": 2113, "train_s": 436.0, "final": {"psnr": 17.90}}))
+    third = wall_clock_retry(config, tried, 417.0)
+    assert third.name == "ngp19-wall-clock-3" and third.overrides["pipeline.global_steps"] == 2021  # ceil(417 x 2113 / 436)
+    tried.append((third, {"steps": 2021, "train_s": 400.0, "final": {"psnr": 17.85}}))
+    assert wall_clock_retry(config, tried, 417.0) is None  # three runs: the most allowed
+    chosen, note = nearest_to_wall_clock(tried, 417.0)
+    assert chosen["steps"] == 2021  # 17 s before it, against 19 s after and 39 s before
+    assert note.startswith("3 run(s) for the blocks' 417 s") and note.endswith("read: ngp19-wall-clock-3")
+    # a pace that plans a step count already tried ends the tries: ceil(417 x 2113 / 460.24) = 1915
+    again = [(first, {"steps": 1915, "train_s": 378.0, "final": {}}), (second, {"steps": 2113, "train_s": 460.24, "final": {}})]
+    assert wall_clock_retry(config, again, 417.0) is None
+    again[1][1]["train_s"] = 455.0  # ceil(417 x 2113 / 455) = 1937: a new count, tried
+    assert wall_clock_retry(config, again, 417.0).overrides["pipeline.global_steps"] == 1937
+
+
+def test_resume_reuses_a_finished_run_of_the_same_spec_and_trains_a_changed_one(tmp_path: Path) -> None:
+    """``--resume``: a variant whose spec and result are in runs/ is read, not trained; a changed spec
+    (another seed) trains, and the result of an earlier spec is removed before its run starts, so that
+    a run stopped midway is never read as finished."""
+    from scalar_nerfstudio.benchmarking import schedule
+
+    runs = tmp_path / "bench" / "runs"
+    runs.mkdir(parents=True)
+    config = BenchmarkConfig(data=tmp_path, output_dir=tmp_path / "bench", log2_table=10, variants=("ngp19",), resume=True)
+    variant = plan(config)[0][0]
+    spec = variant_spec(config, variant, runs, {})
+    (runs / "ngp19.spec.json").write_text(json.dumps(spec, indent=2))
+    (runs / "ngp19.json").write_text(json.dumps({"name": "ngp19", "steps": 1600, "train_s": 119.0, "final": {"psnr": 17.65}}))
+    progress = mock.MagicMock()
+    with mock.patch.object(schedule.subprocess, "Popen") as popen:
+        result = schedule.run_variant(config, variant, runs, {}, progress, 0)
+    popen.assert_not_called()
+    assert result["final"]["psnr"] == 17.65
+
+    config.seed = 1  # another spec: trained, and the old result is gone before the run starts
+    with mock.patch.object(schedule.subprocess, "Popen", side_effect=RuntimeError("stopped")):
+        with pytest.raises(RuntimeError, match="stopped"):
+            schedule.run_variant(config, variant, runs, {}, progress, 0)
+    assert not (runs / "ngp19.json").exists()
+    assert json.loads((runs / "ngp19.spec.json").read_text())["overrides"]["machine.seed"] == 1
+    assert schedule.finished_run(variant_spec(config, variant, runs, {}), runs / "ngp19.spec.json") is None
+    config.resume = False  # without --resume a finished run of the same spec trains again
+    (runs / "ngp19.json").write_text(json.dumps({"name": "ngp19", "steps": 1600, "train_s": 119.0, "final": {"psnr": 17.65}}))
+    with mock.patch.object(schedule.subprocess, "Popen", side_effect=RuntimeError("stopped")):
+        with pytest.raises(RuntimeError, match="stopped"):
+            schedule.run_variant(config, variant, runs, {}, progress, 0)
+
+
 def test_parallel_budget_gives_every_block_the_steps_one_model_trains_after_the_global_phase(tmp_path: Path) -> None:
     """``auto-parallel``: ns-train's defaults (automatic K, default fusion first) from the shared global
     phase, each block trained K x B steps (or --parallel-block-steps), evaluated at its end only; with
@@ -381,6 +482,7 @@ def test_bad_benchmark_options_are_refused_before_anything_is_written(tmp_path: 
         (BenchmarkConfig(data=scene, output_dir=output, parallel_block_steps=-3), "--parallel-block-steps -3"),
         (BenchmarkConfig(data=scene, output_dir=output, decoder_width=0), "--decoder-width 0"),
         (BenchmarkConfig(data=scene, output_dir=output, fusions=("guided",)), "--fusions guided"),
+        (BenchmarkConfig(data=scene, output_dir=output, wall_clock_tries=0), "--wall-clock-tries 0"),
         (BenchmarkConfig(data=tmp_path / "missing", output_dir=output), "is not a scene folder"),
         (BenchmarkConfig(output_dir=output), "is not a scene folder"),
     ):

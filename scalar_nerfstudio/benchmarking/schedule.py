@@ -15,9 +15,12 @@ import sys
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
 
-from scalar_nerfstudio.benchmarking.variants import BenchmarkConfig, Variant, check_options, plan, use_quick_budgets, wall_clock_variants
+from scalar_nerfstudio.benchmarking.variants import (
+    BenchmarkConfig, Variant, blocks_wall_clock_s, check_options, nearest_to_wall_clock, plan, use_quick_budgets, wall_clock_retry,
+    wall_clock_variants,
+)
 
-__all__ = ["RUNNER_MODULE", "prepare", "run_variant", "run_variants", "variant_spec", "with_base_phase"]
+__all__ = ["RUNNER_MODULE", "finished_run", "prepare", "run_variant", "run_variants", "variant_spec", "with_base_phase"]
 
 #: The worker module each variant runs in (``python -m RUNNER_MODULE SPEC.json``).
 RUNNER_MODULE = "scalar_nerfstudio.benchmarking.runner"
@@ -67,9 +70,15 @@ def variant_spec(config: BenchmarkConfig, variant: Variant, runs: Path, results:
 
 
 def run_variant(config: BenchmarkConfig, variant: Variant, runs: Path, results: Dict[str, Dict[str, Any]], progress, task) -> Dict[str, Any]:
-    """Train one variant in a subprocess (progress bar from its PROGRESS lines); its result dict."""
+    """Train one variant in a subprocess (progress bar from its PROGRESS lines); its result dict. With
+    ``config.resume``, a finished run of the same spec in ``runs`` is read instead (:func:`finished_run`)."""
     spec = variant_spec(config, variant, runs, results)
     spec_path = runs / f"{variant.name}.spec.json"
+    result = finished_run(spec, spec_path) if config.resume else None
+    if result is not None:
+        progress.console.print(f"{variant.name}: reusing its finished run ({spec['result']})")
+        return _completed(variant, result, results)
+    Path(spec["result"]).unlink(missing_ok=True)  # an earlier spec's result never passes for this spec's (--resume)
     spec_path.write_text(json.dumps(spec, indent=2))
     log_path = runs / f"{variant.name}.log"
     command = [sys.executable, "-m", RUNNER_MODULE, str(spec_path)]
@@ -87,7 +96,23 @@ def run_variant(config: BenchmarkConfig, variant: Variant, runs: Path, results: 
     if code != 0:
         tail = "".join(log_path.read_text().splitlines(keepends=True)[-30:])
         raise SystemExit(f"scalar-nerf-benchmark: variant {variant.name} failed (exit {code}); log {log_path}:\n{tail}")
-    result = json.loads(Path(spec["result"]).read_text())
+    return _completed(variant, json.loads(Path(spec["result"]).read_text()), results)
+
+
+def finished_run(spec: Dict[str, Any], spec_path: Path) -> Optional[Dict[str, Any]]:
+    """The result of the run ``spec_path`` describes, when that spec is ``spec`` (compared as JSON) and
+    its result file is there; else None."""
+    result_path = Path(spec["result"])
+    if not (spec_path.is_file() and result_path.is_file()):
+        return None
+    if json.loads(spec_path.read_text()) != json.loads(json.dumps(spec)):
+        return None
+    return json.loads(result_path.read_text())
+
+
+def _completed(variant: Variant, result: Dict[str, Any], results: Dict[str, Dict[str, Any]]) -> Dict[str, Any]:
+    """A runner's ``result`` as the benchmark keeps it: the global phase's checkpoint found, a block
+    variant's global phase counted in (:func:`with_base_phase`)."""
     if variant.name == "global":
         checkpoints = sorted((Path(result["run_dir"]) / "nerfstudio_models").glob("step-*.ckpt"))
         result["checkpoint"] = str(checkpoints[-1])
@@ -119,25 +144,34 @@ def run_variants(config: BenchmarkConfig, variants: List[Variant], notes: Option
     """Every variant in order under ``config.output_dir/runs``, with a progress bar each; their results
     by name. nerfacto gets the wall-clock of ``scalar`` (else twice the global phase's). Then the one-model
     runs that ended before the blocks' wall-clock on K workers train again for it
-    (:func:`.variants.wall_clock_variants`); their notes are added to ``notes``."""
+    (:func:`.variants.wall_clock_variants`), up to ``config.wall_clock_tries`` times while a run ends away
+    from it (:func:`.variants.wall_clock_retry`); the run nearest it is kept under ``<name>-wall-clock``,
+    and their notes are added to ``notes``."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     runs = config.output_dir / "runs"
     results: Dict[str, Dict[str, Any]] = {}
     with Progress(TextColumn("{task.description:<16}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn()) as progress:
 
-        def train(variant: Variant, task) -> None:
+        def train(variant: Variant, task) -> Dict[str, Any]:
             progress.start_task(task)
-            results[variant.name] = run_variant(config, variant, runs, results, progress, task)
+            result = run_variant(config, variant, runs, results, progress, task)
             progress.update(task, completed=progress.tasks[task].total)
+            return result
 
         tasks = {v.name: progress.add_task(v.name, total=1.0, start=False) for v in variants}
         for variant in variants:
             if variant.name == "nerfacto":
                 variant.time_limit_s = results["scalar"]["train_s"] if "scalar" in results else results["global"]["train_s"] * 2
-            train(variant, tasks[variant.name])
+            results[variant.name] = train(variant, tasks[variant.name])
+        seconds = blocks_wall_clock_s(results)
         for variant, note in wall_clock_variants(config, variants, results):
-            train(variant, progress.add_task(variant.name, total=1.0, start=False))
+            tried: List[Tuple[Variant, Dict[str, Any]]] = []
+            again: Optional[Variant] = variant
+            while again is not None:
+                tried.append((again, train(again, progress.add_task(again.name, total=1.0, start=False))))
+                again = wall_clock_retry(config, tried, seconds)
+            results[variant.name], runs_note = nearest_to_wall_clock(tried, seconds)
             if notes is not None:
-                notes[variant.name] = note
+                notes[variant.name] = f"{note}. {runs_note}"
     return results

@@ -44,7 +44,10 @@ budget where the K workers buy K times the block steps in NGP_T's wall-clock. Wh
 it is trained once more, from the start, for as many steps as fit in that wall-clock at its first
 run's pace (``ngp19-wall-clock``: see :func:`wall_clock_variants`): a one-model run's learning rate decays
 over its own steps, so its curve cannot be read past its end, and its end is not what it reaches in
-the blocks' time.
+the blocks' time. A run's pace changes with its length and the machine's state, so when that run
+ends more than the tolerance away from the wall-clock, it is planned again from its own pace
+(``ngp19-wall-clock-2``, ...; :func:`wall_clock_retry`), up to ``--wall-clock-tries`` runs, and the
+run that ended nearest the wall-clock is the one read.
 """
 
 from __future__ import annotations
@@ -55,8 +58,8 @@ from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
 
 __all__ = [
-    "VARIANTS", "WALL_CLOCK_SUFFIX", "WALL_CLOCK_TOLERANCE", "BenchmarkConfig", "Variant", "auto_k", "check_options",
-    "parallel_block_steps", "plan", "use_quick_budgets", "wall_clock_variants",
+    "VARIANTS", "WALL_CLOCK_SUFFIX", "WALL_CLOCK_TOLERANCE", "BenchmarkConfig", "Variant", "auto_k", "blocks_wall_clock_s", "check_options",
+    "nearest_to_wall_clock", "parallel_block_steps", "plan", "use_quick_budgets", "wall_clock_retry", "wall_clock_variants",
 ]
 
 VARIANTS: Tuple[str, ...] = (
@@ -109,6 +112,15 @@ class BenchmarkConfig:
     more, for as many steps as fit in it (``<variant>-wall-clock``), so that equal wall-clock compares
     the blocks with a run of their length, not with the shorter run's end. Off: the table reads the
     shorter run's end and says so."""
+    wall_clock_tries: int = 3
+    """At most this many runs of each one-model variant trained for the blocks' wall-clock: while one ends more than
+    3 % before or after it, the next is planned from that run's own pace
+    (a run's steps get faster or slower with its length and the machine's state); the run that ended
+    nearest the wall-clock is read. Each run costs one model's training and one evaluation."""
+    resume: bool = False
+    """Reuse each variant's finished run in output_dir/runs whose spec there is the one this command writes
+    (same scene, options and seed) and whose result JSON is there: a stopped or extended benchmark trains only
+    what is missing or changed."""
     seed: int = 42
     """``machine.seed`` of every variant (ns-train's default): each run starts from the initial weights
     and rays this seed gives, so the same command trains the same models; another seed repeats the
@@ -149,6 +161,8 @@ def check_options(config: BenchmarkConfig) -> None:
     anything is written)."""
     if config.parallel_block_steps is not None and config.parallel_block_steps < 1:
         raise SystemExit(f"scalar-nerf-benchmark: --parallel-block-steps {config.parallel_block_steps}: each block needs at least 1 step")
+    if config.wall_clock_tries < 1:
+        raise SystemExit(f"scalar-nerf-benchmark: --wall-clock-tries {config.wall_clock_tries}: at least 1 run is needed")
     if config.decoder_width is not None and config.decoder_width < 1:
         raise SystemExit(f"scalar-nerf-benchmark: --decoder-width {config.decoder_width}: a decoder layer needs at least 1 unit")
     unknown = [v for v in config.variants if v not in VARIANTS]
@@ -272,19 +286,32 @@ def plan(config: BenchmarkConfig) -> Tuple[List[Variant], Dict[str, str]]:
     return out, notes
 
 
+def blocks_wall_clock_s(results: Dict[str, Dict[str, Any]]) -> float:
+    """The blocks' wall-clock on K workers: the longest ``parallel_train_s`` in ``results`` (a block
+    variant's global phase plus its slowest block, :func:`.schedule.with_base_phase`); 0 without one."""
+    return max((float(r["parallel_train_s"]) for r in results.values() if r.get("parallel_train_s")), default=0.0)
+
+
+def _planned_for(variant: Variant, name: str, run: Dict[str, Any], seconds: float) -> Variant:
+    """A copy of the one-model ``variant`` named ``name`` that trains the steps ``run``'s pace fits in
+    ``seconds``, from the start, evaluated at its end only."""
+    steps = math.ceil(seconds * run["steps"] / max(float(run["train_s"]), 1e-9))
+    return Variant(name, variant.method, {**variant.overrides, "pipeline.global_steps": steps}, list(variant.fusions), eval_every=0)
+
+
 def wall_clock_variants(
     config: BenchmarkConfig, variants: List[Variant], results: Dict[str, Dict[str, Any]]
 ) -> List[Tuple[Variant, str]]:
     """The one-model runs to train once more, with a note each, so that the equal wall-clock comparison
     reads a run as long as the blocks' (``--match-wall-clock``).
 
-    The blocks' wall-clock is the longest ``parallel_train_s`` in ``results`` (a block variant's global
-    phase plus its slowest block, :func:`.schedule.with_base_phase`). A one-model variant of ``variants``
+    The blocks' wall-clock is :func:`blocks_wall_clock_s`. A one-model variant of ``variants``
     (``ngp19``, ``ngp21``) whose run in ``results`` ended more than :data:`WALL_CLOCK_TOLERANCE` of it
     earlier gets a copy named ``<name>-wall-clock`` that trains ``ceil(wall-clock x steps / train_s)``
     steps, its first run's pace, from the start: its learning rate then decays over the longer run. It is
-    evaluated at its end only."""
-    seconds = max((float(r["parallel_train_s"]) for r in results.values() if r.get("parallel_train_s")), default=0.0)
+    evaluated at its end only. When it too ends away from the wall-clock, :func:`wall_clock_retry` plans
+    the next run."""
+    seconds = blocks_wall_clock_s(results)
     if not config.match_wall_clock or seconds <= 0.0:
         return []
     out: List[Tuple[Variant, str]] = []
@@ -292,11 +319,35 @@ def wall_clock_variants(
         first = results.get(variant.name)
         if variant.name not in ("ngp19", "ngp21") or first is None or first["train_s"] >= seconds * (1.0 - WALL_CLOCK_TOLERANCE):
             continue
+        again = _planned_for(variant, variant.name + WALL_CLOCK_SUFFIX, first, seconds)
         pace = first["steps"] / max(float(first["train_s"]), 1e-9)  # steps per second of training
-        steps = math.ceil(seconds * pace)
-        again = Variant(variant.name + WALL_CLOCK_SUFFIX, variant.method, {**variant.overrides, "pipeline.global_steps": steps},
-                        list(variant.fusions), eval_every=0)  # its end is what is read
-        note = (f"{variant.name} trained again, {steps} steps: its first run of {first['steps']} steps ended at "
-                f"{first['train_s']:.0f} s, the blocks on K workers at {seconds:.0f} s ({pace:.1f} steps/s)")
+        note = (f"{variant.name} trained again, {again.overrides['pipeline.global_steps']} steps: its first run of {first['steps']} "
+                f"steps ended at {first['train_s']:.0f} s, the blocks on K workers at {seconds:.0f} s ({pace:.1f} steps/s)")
         out.append((again, note))
     return out
+
+
+def wall_clock_retry(config: BenchmarkConfig, tried: List[Tuple[Variant, Dict[str, Any]]], seconds: float) -> Optional[Variant]:
+    """The next run of a one-model variant trained for the blocks' wall-clock ``seconds``, or None.
+
+    ``tried``: its runs so far (the first is ``<name>-wall-clock`` of :func:`wall_clock_variants`) with
+    their results. None when the last ended within :data:`WALL_CLOCK_TOLERANCE` of ``seconds``, when
+    ``config.wall_clock_tries`` runs were trained, or when the last run's pace plans a step count already
+    tried. Else ``<name>-wall-clock-<n>``: the steps the last run's own pace fits in ``seconds``."""
+    variant, last = tried[-1]
+    if abs(float(last["train_s"]) - seconds) <= WALL_CLOCK_TOLERANCE * seconds or len(tried) >= config.wall_clock_tries:
+        return None
+    name = tried[0][0].name + f"-{len(tried) + 1}"
+    again = _planned_for(variant, name, last, seconds)
+    if again.overrides["pipeline.global_steps"] in {v.overrides["pipeline.global_steps"] for v, _ in tried}:
+        return None
+    return again
+
+
+def nearest_to_wall_clock(tried: List[Tuple[Variant, Dict[str, Any]]], seconds: float) -> Tuple[Dict[str, Any], str]:
+    """Of a one-model variant's runs for the blocks' wall-clock ``seconds`` (with their results), the
+    result of the one that ended nearest it, with a note of every run's steps, time and PSNR."""
+    variant, chosen = min(tried, key=lambda pair: abs(float(pair[1]["train_s"]) - seconds))
+    runs = "; ".join(f"{v.name}: {r['steps']} steps in {r['train_s']:.0f} s, {r['final'].get('psnr', float('nan')):.2f} dB"
+                     for v, r in tried)
+    return chosen, f"{len(tried)} run(s) for the blocks' {seconds:.0f} s ({runs}); read: {variant.name}"
