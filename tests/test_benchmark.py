@@ -78,6 +78,17 @@ def test_quick_benchmark_end_to_end(tmp_path: Path) -> None:
     (row,) = json.loads((tmp_path / "rows.json").read_text()).values()
     assert abs(row["held_out_psnr"] - scalar["final"]["psnr"]) < 0.05, (row, scalar["final"])
     assert list((Path(ngp["run_dir"]) / "nerfstudio_models").glob("step-*.ckpt"))
+    # The same command with --resume trains nothing: every run is read back and reported the same.
+    again = subprocess.run(
+        ["scalar-nerf-benchmark", "--quick", "--output-dir", str(output), "--variants", "ngp19", "scalar", "nerfacto",
+         "--no-match-wall-clock", "--resume"],
+        capture_output=True, text=True, timeout=300,
+    )
+    assert again.returncode == 0, again.stdout[-3000:] + again.stderr[-3000:]
+    assert again.stdout.count("reusing its finished run") == 4  # global, ngp19, scalar, nerfacto
+    reread = json.loads((output / "results.json").read_text())["results"]
+    for name in ("global", "ngp19", "scalar", "nerfacto"):
+        assert reread[name]["final"] == results[name]["final"] and reread[name]["train_s"] == results[name]["train_s"], name
 
 
 def test_plan_and_budgets(tmp_path: Path) -> None:
@@ -373,36 +384,120 @@ def test_the_wall_clock_runs_stop_at_the_tries_allowed_and_read_the_nearest() ->
 
 
 def test_resume_reuses_a_finished_run_of_the_same_spec_and_trains_a_changed_one(tmp_path: Path) -> None:
-    """``--resume``: a variant whose spec and result are in runs/ is read, not trained; a changed spec
-    (another seed) trains, and the result of an earlier spec is removed before its run starts, so that
-    a run stopped midway is never read as finished."""
+    """``--resume``: a variant whose spec, result and checkpoint are in runs/ is read, not trained, and
+    says so. It trains again when its spec changed (another seed), when the result is older than the
+    spec (a run stopped midway, after an earlier spec's run had finished), when its checkpoint is gone,
+    and without --resume."""
+    import os
+
     from scalar_nerfstudio.benchmarking import schedule
 
     runs = tmp_path / "bench" / "runs"
     runs.mkdir(parents=True)
     config = BenchmarkConfig(data=tmp_path, output_dir=tmp_path / "bench", log2_table=10, variants=("ngp19",), resume=True)
     variant = plan(config)[0][0]
-    spec = variant_spec(config, variant, runs, {})
-    (runs / "ngp19.spec.json").write_text(json.dumps(spec, indent=2))
-    (runs / "ngp19.json").write_text(json.dumps({"name": "ngp19", "steps": 1600, "train_s": 119.0, "final": {"psnr": 17.65}}))
-    progress = mock.MagicMock()
-    with mock.patch.object(schedule.subprocess, "Popen") as popen:
-        result = schedule.run_variant(config, variant, runs, {}, progress, 0)
-    popen.assert_not_called()
-    assert result["final"]["psnr"] == 17.65
+    spec_path, result_path = runs / "ngp19.spec.json", runs / "ngp19.json"
+    checkpoints = tmp_path / "run" / "nerfstudio_models"
+    checkpoints.mkdir(parents=True)
+    (checkpoints / "step-000001599.ckpt").write_bytes(b"")
+    finished = {"name": "ngp19", "steps": 1600, "train_s": 119.0, "final": {"psnr": 17.65}, "run_dir": str(tmp_path / "run")}
+    stopped = RuntimeError("stopped")  # the subprocess that would train it
 
-    config.seed = 1  # another spec: trained, and the old result is gone before the run starts
-    with mock.patch.object(schedule.subprocess, "Popen", side_effect=RuntimeError("stopped")):
-        with pytest.raises(RuntimeError, match="stopped"):
-            schedule.run_variant(config, variant, runs, {}, progress, 0)
-    assert not (runs / "ngp19.json").exists()
-    assert json.loads((runs / "ngp19.spec.json").read_text())["overrides"]["machine.seed"] == 1
-    assert schedule.finished_run(variant_spec(config, variant, runs, {}), runs / "ngp19.spec.json") is None
+    def run(config) -> dict:
+        with mock.patch.object(schedule.subprocess, "Popen", side_effect=stopped) as popen:
+            try:
+                return schedule.run_variant(config, variant, runs, {}, mock.MagicMock(), 0)
+            except RuntimeError:
+                assert popen.call_count == 1
+                return {}
+
+    assert run(config) == {}  # nothing there: it trains (and writes its spec first)
+    result_path.write_text(json.dumps(finished))  # ... and finishes
+    result = run(config)
+    assert result["final"]["psnr"] == 17.65 and result["reused"]
+
+    config.seed = 1  # another spec: trained
+    assert run(config) == {}
+    assert json.loads(spec_path.read_text())["overrides"]["machine.seed"] == 1
+    assert run(config) == {}  # the seed-42 result is older than the seed-1 spec: never read as its result
+    config.seed = 42
+    run(config)  # the seed-42 spec written again, and its run stopped: the result is still older
+    assert run(config) == {}
+    os.utime(result_path)  # the result written after the spec: finished
+    assert run(config)["reused"]
+    (checkpoints / "step-000001599.ckpt").unlink()  # its checkpoint gone: trained again
+    assert run(config) == {}
+    (checkpoints / "step-000001599.ckpt").write_bytes(b"")
+    os.utime(result_path)
     config.resume = False  # without --resume a finished run of the same spec trains again
-    (runs / "ngp19.json").write_text(json.dumps({"name": "ngp19", "steps": 1600, "train_s": 119.0, "final": {"psnr": 17.65}}))
-    with mock.patch.object(schedule.subprocess, "Popen", side_effect=RuntimeError("stopped")):
-        with pytest.raises(RuntimeError, match="stopped"):
-            schedule.run_variant(config, variant, runs, {}, progress, 0)
+    assert run(config) == {}
+
+
+def test_resume_reads_a_block_variant_with_its_global_phase_once_and_notes_every_reused_run(tmp_path: Path) -> None:
+    """A resumed benchmark of NGP_T and the blocks: the global phase, NGP_T and the blocks are read back
+    (the blocks' global phase counted once, their spec naming the global checkpoint found again), then
+    the wall-clock runs: the first reused, only the second trained (more --wall-clock-tries than the
+    first benchmark had); the report's notes name every reused run."""
+    from scalar_nerfstudio.benchmarking import schedule
+
+    output = tmp_path / "bench"
+    runs = output / "runs"
+    runs.mkdir(parents=True)
+    config = BenchmarkConfig(data=tmp_path, output_dir=output, log2_table=10, global_steps=900, block_steps=175, num_blocks=4,
+                             parallel_block_steps=850, eval_every=1600, variants=("ngp19", "auto-parallel"), resume=True)
+    with mock.patch("scalar_nerfstudio.benchmarking.variants.auto_k", return_value=8):
+        variants = plan(config)[0]
+    assert [v.name for v in variants] == ["global", "ngp19", "auto-parallel"]
+
+    def finished(name: str, steps: int, train_s: float, psnr: float, **extra) -> dict:
+        run_dir = tmp_path / "run" / name
+        (run_dir / "nerfstudio_models").mkdir(parents=True, exist_ok=True)
+        (run_dir / "nerfstudio_models" / f"step-{steps - 1:09d}.ckpt").write_bytes(b"")
+        return {"name": name, "steps": steps, "train_s": train_s, "train_rays_per_s": 1000.0, "run_dir": str(run_dir),
+                "curve": [{"step": steps, "train_s": train_s, "psnr": psnr}], "final": {"psnr": psnr}, **extra}
+
+    def save(variant, result: dict, results: dict) -> None:
+        (runs / f"{variant.name}.spec.json").write_text(json.dumps(variant_spec(config, variant, runs, results)))
+        (runs / f"{variant.name}.json").write_text(json.dumps(result))
+
+    earlier: dict = {}
+    by_name = {v.name: v for v in variants}
+    save(by_name["global"], finished("global", 900, 200.0, 17.1), earlier)
+    earlier["global"] = {**finished("global", 900, 200.0, 17.1), "checkpoint": str(tmp_path / "run" / "global" / "nerfstudio_models" / "step-000000899.ckpt")}
+    save(by_name["ngp19"], finished("ngp19", 1600, 350.0, 17.5), earlier)
+    save(by_name["auto-parallel"], finished("auto-parallel", 6800, 1600.0, 19.0, num_blocks=8, block_train_s={"0": 200.0, "1": 210.0}), earlier)
+    first_rerun = schedule.wall_clock_variants(config, variants, {**earlier, "ngp19": finished("ngp19", 1600, 350.0, 17.5),
+                                                                   "auto-parallel": {"parallel_train_s": 410.0}})[0][0]
+    assert first_rerun.overrides["pipeline.global_steps"] == 1875  # ceil(410 x 1600 / 350)
+    save(first_rerun, finished("ngp19-wall-clock", 1875, 380.0, 17.7), earlier)  # 7 % short of 410 s
+
+    def fake_train(config, variant, runs, results, progress, task):
+        assert variant.name == "ngp19-wall-clock-2", f"{variant.name} should have been reused"
+        assert variant.overrides["pipeline.global_steps"] == 2024  # ceil(410 x 1875 / 380)
+        return finished("ngp19-wall-clock-2", 2024, 408.0, 17.8)
+
+    notes: dict = {}
+    real_run_variant = schedule.run_variant
+    trained = []
+
+    def run_or_reuse(config, variant, runs, results, progress, task):
+        result = real_run_variant(config, variant, runs, results, progress, task) if variant.name != "ngp19-wall-clock-2" else None
+        if result is None:
+            trained.append(variant.name)
+            return fake_train(config, variant, runs, results, progress, task)
+        return result
+
+    with mock.patch.object(schedule, "run_variant", side_effect=run_or_reuse), \
+            mock.patch.object(schedule.subprocess, "Popen", side_effect=AssertionError("nothing but the second rerun trains")):
+        results = schedule.run_variants(config, variants, notes)
+    assert trained == ["ngp19-wall-clock-2"]
+    blocks = results["auto-parallel"]
+    assert blocks["steps"] == 900 + 6800 and blocks["parallel_train_s"] == 200.0 + 210.0  # the global phase counted once
+    assert results["global"]["checkpoint"].endswith("step-000000899.ckpt")
+    assert results["ngp19-wall-clock"]["steps"] == 2024
+    for name in ("global", "ngp19", "auto-parallel"):
+        assert "reused (--resume)" in notes[name], name
+    assert "ngp19-wall-clock: reused (--resume)" in notes["ngp19-wall-clock"] and "read: ngp19-wall-clock-2" in notes["ngp19-wall-clock"]
 
 
 def test_parallel_budget_gives_every_block_the_steps_one_model_trains_after_the_global_phase(tmp_path: Path) -> None:

@@ -24,6 +24,8 @@ __all__ = ["RUNNER_MODULE", "finished_run", "prepare", "run_variant", "run_varia
 
 #: The worker module each variant runs in (``python -m RUNNER_MODULE SPEC.json``).
 RUNNER_MODULE = "scalar_nerfstudio.benchmarking.runner"
+#: The report's note on a run read back by ``--resume``.
+REUSED_NOTE = "reused (--resume): an earlier run of the same spec, timed on the machine as it was then"
 
 
 def _quick_scene(output_dir: Path) -> Path:
@@ -77,8 +79,7 @@ def run_variant(config: BenchmarkConfig, variant: Variant, runs: Path, results: 
     result = finished_run(spec, spec_path) if config.resume else None
     if result is not None:
         progress.console.print(f"{variant.name}: reusing its finished run ({spec['result']})")
-        return _completed(variant, result, results)
-    Path(spec["result"]).unlink(missing_ok=True)  # an earlier spec's result never passes for this spec's (--resume)
+        return _completed(variant, {**result, "reused": True}, results)
     spec_path.write_text(json.dumps(spec, indent=2))
     log_path = runs / f"{variant.name}.log"
     command = [sys.executable, "-m", RUNNER_MODULE, str(spec_path)]
@@ -100,14 +101,23 @@ def run_variant(config: BenchmarkConfig, variant: Variant, runs: Path, results: 
 
 
 def finished_run(spec: Dict[str, Any], spec_path: Path) -> Optional[Dict[str, Any]]:
-    """The result of the run ``spec_path`` describes, when that spec is ``spec`` (compared as JSON) and
-    its result file is there; else None."""
+    """The result of the run ``spec_path`` describes, or None. It is that run's when the spec there is
+    ``spec`` (compared as JSON, so paths as written: a scene or output folder given another way is
+    another spec), the result file was written after that spec (a run stopped midway leaves the
+    result of an earlier spec older than its own), it names the variant, and its run folder, with its
+    checkpoint, is still there."""
     result_path = Path(spec["result"])
     if not (spec_path.is_file() and result_path.is_file()):
         return None
     if json.loads(spec_path.read_text()) != json.loads(json.dumps(spec)):
         return None
-    return json.loads(result_path.read_text())
+    if result_path.stat().st_mtime < spec_path.stat().st_mtime:
+        return None
+    result = json.loads(result_path.read_text())
+    run_dir = Path(result.get("run_dir", ""))
+    if result.get("name") != spec["name"] or not list((run_dir / "nerfstudio_models").glob("step-*.ckpt")):
+        return None
+    return result
 
 
 def _completed(variant: Variant, result: Dict[str, Any], results: Dict[str, Dict[str, Any]]) -> Dict[str, Any]:
@@ -164,6 +174,8 @@ def run_variants(config: BenchmarkConfig, variants: List[Variant], notes: Option
             if variant.name == "nerfacto":
                 variant.time_limit_s = results["scalar"]["train_s"] if "scalar" in results else results["global"]["train_s"] * 2
             results[variant.name] = train(variant, tasks[variant.name])
+            if results[variant.name].get("reused") and notes is not None:
+                notes[variant.name] = "; ".join(filter(None, [notes.get(variant.name), REUSED_NOTE]))
         seconds = blocks_wall_clock_s(results)
         for variant, note in wall_clock_variants(config, variants, results):
             tried: List[Tuple[Variant, Dict[str, Any]]] = []
@@ -172,6 +184,7 @@ def run_variants(config: BenchmarkConfig, variants: List[Variant], notes: Option
                 tried.append((again, train(again, progress.add_task(again.name, total=1.0, start=False))))
                 again = wall_clock_retry(config, tried, seconds)
             results[variant.name], runs_note = nearest_to_wall_clock(tried, seconds)
+            reused = [v.name for v, r in tried if r.get("reused")]
             if notes is not None:
-                notes[variant.name] = f"{note}. {runs_note}"
+                notes[variant.name] = f"{note}. {runs_note}" + (f"; {', '.join(reused)}: {REUSED_NOTE}" if reused else "")
     return results

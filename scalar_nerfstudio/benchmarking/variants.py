@@ -114,13 +114,14 @@ class BenchmarkConfig:
     shorter run's end and says so."""
     wall_clock_tries: int = 3
     """At most this many runs of each one-model variant trained for the blocks' wall-clock: while one ends more than
-    3 % before or after it, the next is planned from that run's own pace
+    3 % (WALL_CLOCK_TOLERANCE) before or after it, the next is planned from that run's own pace
     (a run's steps get faster or slower with its length and the machine's state); the run that ended
     nearest the wall-clock is read. Each run costs one model's training and one evaluation."""
     resume: bool = False
     """Reuse each variant's finished run in output_dir/runs whose spec there is the one this command writes
-    (same scene, options and seed) and whose result JSON is there: a stopped or extended benchmark trains only
-    what is missing or changed."""
+    (same scene, options, seed and paths as written; the code and the scene's files are not compared) and
+    whose result and checkpoint are there: a stopped or extended benchmark trains only what is missing or
+    changed. The report notes each reused run (timed on the machine as it was then)."""
     seed: int = 42
     """``machine.seed`` of every variant (ns-train's default): each run starts from the initial weights
     and rays this seed gives, so the same command trains the same models; another seed repeats the
@@ -295,7 +296,8 @@ def blocks_wall_clock_s(results: Dict[str, Dict[str, Any]]) -> float:
 def _planned_for(variant: Variant, name: str, run: Dict[str, Any], seconds: float) -> Variant:
     """A copy of the one-model ``variant`` named ``name`` that trains the steps ``run``'s pace fits in
     ``seconds``, from the start, evaluated at its end only."""
-    steps = math.ceil(seconds * run["steps"] / max(float(run["train_s"]), 1e-9))
+    pace = run["steps"] / max(float(run["train_s"]), 1e-9)  # steps per second of training
+    steps = min(math.ceil(seconds * pace), 10 * int(run["steps"]))  # (a run timed at ~0 s plans 10x its steps, not 10^13)
     return Variant(name, variant.method, {**variant.overrides, "pipeline.global_steps": steps}, list(variant.fusions), eval_every=0)
 
 
@@ -321,8 +323,8 @@ def wall_clock_variants(
             continue
         again = _planned_for(variant, variant.name + WALL_CLOCK_SUFFIX, first, seconds)
         pace = first["steps"] / max(float(first["train_s"]), 1e-9)  # steps per second of training
-        note = (f"{variant.name} trained again, {again.overrides['pipeline.global_steps']} steps: its first run of {first['steps']} "
-                f"steps ended at {first['train_s']:.0f} s, the blocks on K workers at {seconds:.0f} s ({pace:.1f} steps/s)")
+        note = (f"{variant.name} trained again from the start, first for {again.overrides['pipeline.global_steps']} steps: its first run of "
+                f"{first['steps']} steps ended at {first['train_s']:.0f} s, the blocks on K workers at {seconds:.0f} s ({pace:.1f} steps/s)")
         out.append((again, note))
     return out
 
