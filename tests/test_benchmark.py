@@ -376,6 +376,8 @@ def test_the_wall_clock_runs_stop_at_the_tries_allowed_and_read_the_nearest() ->
     chosen, note = nearest_to_wall_clock(tried, 417.0)
     assert chosen["steps"] == 2021  # 17 s before it, against 19 s after and 39 s before
     assert note.startswith("3 run(s) for the blocks' 417 s") and note.endswith("read: ngp19-wall-clock-3")
+    tried[1][1]["train_s"] = 400.0  # as near as the third run, with more steps: read
+    assert nearest_to_wall_clock(tried, 417.0)[0]["steps"] == 2113
     # a pace that plans a step count already tried ends the tries: ceil(417 x 2113 / 460.24) = 1915
     again = [(first, {"steps": 1915, "train_s": 378.0, "final": {}}), (second, {"steps": 2113, "train_s": 460.24, "final": {}})]
     assert wall_clock_retry(config, again, 417.0) is None

@@ -348,8 +348,9 @@ def wall_clock_retry(config: BenchmarkConfig, tried: List[Tuple[Variant, Dict[st
 
 def nearest_to_wall_clock(tried: List[Tuple[Variant, Dict[str, Any]]], seconds: float) -> Tuple[Dict[str, Any], str]:
     """Of a one-model variant's runs for the blocks' wall-clock ``seconds`` (with their results), the
-    result of the one that ended nearest it, with a note of every run's steps, time and PSNR."""
-    variant, chosen = min(tried, key=lambda pair: abs(float(pair[1]["train_s"]) - seconds))
+    result of the one that ended nearest it (of two as near, the one that trained more steps: the
+    comparison then errs towards the one model), with a note of every run's steps, time and PSNR."""
+    variant, chosen = min(tried, key=lambda pair: (round(abs(float(pair[1]["train_s"]) - seconds), 1), -int(pair[1]["steps"])))
     runs = "; ".join(f"{v.name}: {r['steps']} steps in {r['train_s']:.0f} s, {r['final'].get('psnr', float('nan')):.2f} dB"
                      for v, r in tried)
     return chosen, f"{len(tried)} run(s) for the blocks' {seconds:.0f} s ({runs}); read: {variant.name}"
