@@ -36,6 +36,8 @@ REPORT_NAME = "model_report.json"
 ASSEMBLED_FROM_NAME = "assembled_from.json"
 BLOCK_MODELS_DIR = "block_models"
 CHECKPOINT_PATTERN = re.compile(r"^step-(\d{9})\.ckpt$")
+MODEL_DIR_NAME = "nerfstudio_models"
+"""nerfstudio's default ``relative_model_dir`` (the benchmark's runs keep it)."""
 PARTIAL_SUFFIX = ".ckpt.partial"
 
 
@@ -109,13 +111,19 @@ def block_model_path(block_dir: Path, block: int) -> Path:
     return Path(block_dir) / f"block-{block:04d}.ckpt"
 
 
+def newest_checkpoint(checkpoint_dir: Path) -> Optional[Path]:
+    """The ``step-N.ckpt`` file of largest N in ``checkpoint_dir`` (a run's ``nerfstudio_models``), or None."""
+    step = latest_checkpoint_step(checkpoint_dir)
+    return None if step is None else Path(checkpoint_dir) / checkpoint_name(step)
+
+
 def latest_checkpoint(run_dir: Path, config: Any) -> Path:
     """The newest checkpoint of a run, given its folder and config."""
     checkpoint_dir = Path(run_dir) / config.relative_model_dir
-    step = latest_checkpoint_step(checkpoint_dir)
-    if step is None:
+    path = newest_checkpoint(checkpoint_dir)
+    if path is None:
         raise RunError(f"{run_dir}: no checkpoint in {checkpoint_dir}")
-    return checkpoint_dir / checkpoint_name(step)
+    return path
 
 
 def report_path(run_dir: Path) -> Path:

@@ -114,18 +114,26 @@ def finished_run(spec: Dict[str, Any], spec_path: Path) -> Optional[Dict[str, An
     if result_path.stat().st_mtime < spec_path.stat().st_mtime:
         return None
     result = json.loads(result_path.read_text())
-    run_dir = Path(result.get("run_dir", ""))
-    if result.get("name") != spec["name"] or not list((run_dir / "nerfstudio_models").glob("step-*.ckpt")):
+    if result.get("name") != spec["name"] or _checkpoint_of(result) is None:
         return None
     return result
+
+
+def _checkpoint_of(result: Dict[str, Any]) -> Optional[Path]:
+    """The newest checkpoint in the run folder a runner's ``result`` names, or None."""
+    from scalar_nerfstudio.runs import MODEL_DIR_NAME, newest_checkpoint
+
+    return newest_checkpoint(Path(result.get("run_dir", "")) / MODEL_DIR_NAME)
 
 
 def _completed(variant: Variant, result: Dict[str, Any], results: Dict[str, Dict[str, Any]]) -> Dict[str, Any]:
     """A runner's ``result`` as the benchmark keeps it: the global phase's checkpoint found, a block
     variant's global phase counted in (:func:`with_base_phase`)."""
     if variant.name == "global":
-        checkpoints = sorted((Path(result["run_dir"]) / "nerfstudio_models").glob("step-*.ckpt"))
-        result["checkpoint"] = str(checkpoints[-1])
+        checkpoint = _checkpoint_of(result)
+        if checkpoint is None:
+            raise SystemExit(f"scalar-nerf-benchmark: the global phase's run {result.get('run_dir')} has no checkpoint to start the blocks from")
+        result["checkpoint"] = str(checkpoint)
     if variant.base is not None:  # the global phase it started from is part of its cost
         result = with_base_phase(result, results[variant.base])
     return result

@@ -293,11 +293,15 @@ def blocks_wall_clock_s(results: Dict[str, Dict[str, Any]]) -> float:
     return max((float(r["parallel_train_s"]) for r in results.values() if r.get("parallel_train_s")), default=0.0)
 
 
+def _pace(run: Dict[str, Any]) -> float:
+    """A run's steps per second of training."""
+    return run["steps"] / max(float(run["train_s"]), 1e-9)
+
+
 def _planned_for(variant: Variant, name: str, run: Dict[str, Any], seconds: float) -> Variant:
     """A copy of the one-model ``variant`` named ``name`` that trains the steps ``run``'s pace fits in
     ``seconds``, from the start, evaluated at its end only."""
-    pace = run["steps"] / max(float(run["train_s"]), 1e-9)  # steps per second of training
-    steps = min(math.ceil(seconds * pace), 10 * int(run["steps"]))  # (a run timed at ~0 s plans 10x its steps, not 10^13)
+    steps = min(math.ceil(seconds * _pace(run)), 10 * int(run["steps"]))  # (a run timed at ~0 s plans 10x its steps, not 10^13)
     return Variant(name, variant.method, {**variant.overrides, "pipeline.global_steps": steps}, list(variant.fusions), eval_every=0)
 
 
@@ -322,9 +326,8 @@ def wall_clock_variants(
         if variant.name not in ("ngp19", "ngp21") or first is None or first["train_s"] >= seconds * (1.0 - WALL_CLOCK_TOLERANCE):
             continue
         again = _planned_for(variant, variant.name + WALL_CLOCK_SUFFIX, first, seconds)
-        pace = first["steps"] / max(float(first["train_s"]), 1e-9)  # steps per second of training
         note = (f"{variant.name} trained again from the start, first for {again.overrides['pipeline.global_steps']} steps: its first run of "
-                f"{first['steps']} steps ended at {first['train_s']:.0f} s, the blocks on K workers at {seconds:.0f} s ({pace:.1f} steps/s)")
+                f"{first['steps']} steps ended at {first['train_s']:.0f} s, the blocks on K workers at {seconds:.0f} s ({_pace(first):.1f} steps/s)")
         out.append((again, note))
     return out
 
