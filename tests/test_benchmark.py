@@ -256,6 +256,24 @@ def test_equal_wall_clock_says_when_a_one_model_run_ended_before_that_time() -> 
     assert "| NGP_12 (one model, 2^12) at the same wall-clock | - | 22 | 20.00: it ended earlier, at 20 s (step 200) |" in lines
 
 
+def test_the_wall_clock_rerun_stands_only_for_a_time_its_first_run_ended_before() -> None:
+    """The rerun is planned for the blocks' (longest) wall-clock: an equal-steps block variant that ends
+    on K workers before the one model's first evaluation is not compared with that longer rerun (the
+    aerial 4 x 4 town's report did, at 254 s, with a run of 378 s): its cell says there is no
+    evaluation at that time and what the first one, later, scored."""
+    from scalar_nerfstudio.benchmarking.report import equal_wall_clock
+
+    results = {
+        "ngp19": {"curve": [{"step": 1600, "train_s": 348.0, "psnr": 17.55}]},
+        "ngp19-wall-clock": {"steps": 2113, "train_s": 378.0, "final": {"psnr": 17.88}},
+    }
+    table = [{"label": "parallel", "fusion": "nearest-guarded", "psnr": 19.07, "parallel_train_s": 417.0},
+             {"label": "equal steps", "fusion": "nearest-guarded", "psnr": 17.73, "parallel_train_s": 254.0}]
+    lines = "\n".join(equal_wall_clock(results, table, log2_table=10))
+    assert "| NGP_10 (one model, 2^10) at the same wall-clock | - | 417 | **17.88**: trained again for this wall-clock, 2113 steps in 378 s |" in lines
+    assert "| NGP_10 (one model, 2^10) at the same wall-clock | - | 254 | no evaluation at that time; its first, at 348 s (step 1600): 17.55 |" in lines
+
+
 def test_a_one_model_run_that_ended_before_the_blocks_is_trained_again_for_their_wall_clock(tmp_path: Path) -> None:
     """NGP_T ended at 119 s, the blocks on K workers at 140 s: NGP_T trains again, from the start, for
     the steps its pace fits in 140 s (its learning rate decays over them), evaluated at its end; a run
