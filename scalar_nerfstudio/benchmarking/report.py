@@ -150,16 +150,15 @@ def equal_wall_clock(results: Dict[str, Dict[str, Any]], table: List[Dict[str, A
             curve = results[name]["curve"]
             found = psnr_at(curve, seconds)
             last = max(curve, key=lambda p: p["train_s"]) if curve else None
-            first = min(curve, key=lambda p: p["train_s"]) if curve else None
             if found:
                 cell = f"{found[0]:.2f} (step {found[1]:.0f})"
-            elif again is not None and (last is None or seconds > last["train_s"]):
-                # the rerun is planned for the blocks' (longest) wall-clock, so it stands only for a time its first run ended before
-                cell = f"**{again['final']['psnr']:.2f}**: trained again for this wall-clock, {again['steps']} steps in {again['train_s']:.0f} s"
-            elif last is not None and seconds > last["train_s"]:
-                cell = f"{last['psnr']:.2f}: it ended earlier, at {last['train_s']:.0f} s (step {last['step']})"
-            elif first is not None:
+            elif last is not None and seconds <= last["train_s"]:  # before its first evaluation: the rerun, planned for a later time, does not stand for it
+                first = min(curve, key=lambda p: p["train_s"])
                 cell = f"no evaluation at that time; its first, at {first['train_s']:.0f} s (step {first['step']}): {first['psnr']:.2f}"
+            elif again is not None:
+                cell = f"**{again['final']['psnr']:.2f}**: trained again for this wall-clock, {again['steps']} steps in {again['train_s']:.0f} s"
+            elif last is not None:
+                cell = f"{last['psnr']:.2f}: it ended earlier, at {last['train_s']:.0f} s (step {last['step']})"
             else:
                 cell = "no evaluation at that time"
             lines.append(f"| {names[(name, 'global')]} at the same wall-clock | - | {seconds:.0f} | {cell} |")
