@@ -1,8 +1,8 @@
 #!/bin/sh
 # Blocks whose own field ends `block_reach` region radii from their centre (the global model's field
-# beyond), trained from the global checkpoints of two earlier benchmarks (docs/town.md, "A block's
+# beyond), trained from the global checkpoints of two earlier benchmarks (docs/notebook/town.md, "A block's
 # field that ends near the block"). Run from the repository root after those benchmarks:
-#   3 x 3 town at 2^10: scalar-nerf-benchmark ... --output-dir outputs/bench-town3x3-t10 (docs/town.md, "The 3 x 3 town at 2^10")
+#   3 x 3 town at 2^10: scalar-nerf-benchmark ... --output-dir outputs/bench-town3x3-t10 (docs/notebook/town.md, "The 3 x 3 town at 2^10")
 #   2 x 2 town at 256 x 192, 2^8: sh docs/benchmark/town-256-t8/run.sh blocks-seed42
 # The option is not in the product (it did not help): apply block-reach.patch first (it was written
 # against commit 376cea2): git apply docs/benchmark/block-reach/block-reach.patch

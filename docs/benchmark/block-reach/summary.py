@@ -1,5 +1,5 @@
 """Blocks whose own field ends near the block (``--pipeline.model.block-reach``) against the same
-blocks without it, from the same global checkpoint (docs/town.md, "A block's field that ends near
+blocks without it, from the same global checkpoint (docs/notebook/town.md, "A block's field that ends near
 the block"). Reads the result JSONs kept beside this script and the baselines' in
 docs/benchmark/town-3x3/t10/runs/ and docs/benchmark/town-256-t8/.
 

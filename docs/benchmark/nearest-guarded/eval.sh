@@ -1,5 +1,5 @@
 #!/bin/sh
-# nearest-guarded against nearest and the global model alone on trained runs (docs/fusion.md, "nearest-guarded").
+# nearest-guarded against nearest and the global model alone on trained runs (docs/notebook/fusion.md, "nearest-guarded").
 # Usage, from the repository root: sh docs/benchmark/nearest-guarded/eval.sh LABEL=RUN/config.yml ...
 # Each run's table goes to docs/benchmark/nearest-guarded/LABEL/fusion.{json,md}; summary.py prints them side by side.
 set -e

@@ -1,4 +1,4 @@
-"""Prints the nearest-guarded table of docs/fusion.md from docs/benchmark/nearest-guarded/*/fusion.json."""
+"""Prints the nearest-guarded table of docs/notebook/fusion.md from docs/benchmark/nearest-guarded/*/fusion.json."""
 
 import json
 import sys

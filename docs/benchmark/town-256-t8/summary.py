@@ -1,4 +1,4 @@
-"""The table of docs/town.md's section "Tables of 2^8", from the runs of run.sh:
+"""The table of docs/notebook/town.md's section "Tables of 2^8", from the runs of run.sh:
 python docs/benchmark/town-256-t8/summary.py [RUNS_DIR]"""
 
 import json

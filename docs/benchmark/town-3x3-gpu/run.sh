@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The 3 x 3 town on one GPU with many more rays than the 2-core CPU allows (docs/town.md, section
+# The 3 x 3 town on one GPU with many more rays than the 2-core CPU allows (docs/notebook/town.md, section
 # "The 3 x 3 town on a GPU"). Every run starts at once and shares the GPU:
 #   - one model with a 2^T, a 2^(T+2) and a 2^(T+4) table, STEPS steps each (the benchmark's
 #     one-model runs: its runner, its specs);

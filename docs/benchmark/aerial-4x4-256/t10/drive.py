@@ -1,4 +1,4 @@
-"""The aerial 4 x 4 town's benchmark of 2026-11-27, cut to fit the session (docs/town.md).
+"""The aerial 4 x 4 town's benchmark of 2026-11-27, cut to fit the session (docs/notebook/town.md).
 
     scalar-nerf-benchmark --data outputs/scenes/aerial-4x4-256 --downscale 1 --log2-table 10 --global-steps 900 \
         --block-steps 175 --num-blocks 4 --parallel-block-steps 850 --eval-every 1600 \

@@ -1,4 +1,4 @@
-"""NGP_12 on the aerial 4 x 4 town, seed 42 (2026-11-28), added to the runs of drive.py (docs/town.md).
+"""NGP_12 on the aerial 4 x 4 town, seed 42 (2026-11-28), added to the runs of drive.py (docs/notebook/town.md).
 
     python docs/benchmark/aerial-4x4-256/t10/drive_ngp12.py
 

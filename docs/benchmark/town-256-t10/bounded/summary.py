@@ -1,4 +1,4 @@
-"""The table of docs/town.md's section "The scene bounded by its depth images", from the runs of
+"""The table of docs/notebook/town.md's section "The scene bounded by its depth images", from the runs of
 run.sh: python docs/benchmark/town-256-t10/bounded/summary.py [RUNS_DIR]"""
 
 import json
