@@ -26,7 +26,7 @@ def measure(num_images: int, budget: str, steps: int) -> dict:
     from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 
     from scalar_nerfstudio.data.datamanager import ScalarDataManagerConfig
-    from scalar_nerfstudio.data.synthetic_scene import write_scene
+    from scalar_nerfstudio.scenes.courtyard import write_scene
 
     scene = Path(tempfile.mkdtemp(prefix="bench-image-cache-"))
     write_scene(scene, num_images=num_images, width=320, height=240)

@@ -127,7 +127,7 @@ def main() -> None:
         print(json.dumps(render_views(args.render, args.views)))
         return
 
-    from scalar_nerfstudio.data.town_scene import TownConfig, write_town
+    from scalar_nerfstudio.scenes.town import TownConfig, write_town
 
     work = Path(tempfile.mkdtemp(prefix="bench-scale-"))
     scene = work / "town"

@@ -17,7 +17,7 @@ import torch
 from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.data.scene_box import SceneBox
 
-from scalar_nerfstudio.data.synthetic_scene import write_scene
+from scalar_nerfstudio.scenes.courtyard import write_scene
 from scalar_nerfstudio.runs import latest_checkpoint_step
 from scalar_nerfstudio.fields.scalar_field import ScalarFieldConfig
 from scalar_nerfstudio.models.scalar_model import ScalarModel, ScalarModelConfig

@@ -22,7 +22,7 @@ import pytest
 from PIL import Image
 
 from scalar_nerfstudio.config_checks import OptionError, check_block_plan, check_options, check_output_dir, check_pipeline_options
-from scalar_nerfstudio.data.synthetic_scene import write_scene
+from scalar_nerfstudio.scenes.courtyard import write_scene
 from scalar_nerfstudio.data.validation import SceneError, check_scene, scan_scene, to_rgb_array
 
 from conftest import ns_train_command, run_dirs

@@ -25,7 +25,7 @@ def test_quick_benchmark_end_to_end(tmp_path: Path) -> None:
     synthetic scene: table, JSON, curves and the three plots."""
     output = tmp_path / "bench"
     result = subprocess.run(
-        ["scalar-nerf-benchmark", "--quick", "--output-dir", str(output), "--variants", "ngp19", "scalar", "nerfacto",
+        ["scalar-nerf-benchmark", "--quick", "--output-dir", str(output), "--variants", "ngp-t", "scalar", "nerfacto",
          "--no-match-wall-clock"],  # (the one-model run trained again for the blocks' wall-clock: tested below)
         capture_output=True, text=True, timeout=900,
     )
@@ -37,12 +37,12 @@ def test_quick_benchmark_end_to_end(tmp_path: Path) -> None:
         "blocks + IDW (same models)", "blocks + nearest (same models)", "its global model alone", "nerfacto (torch), same wall-clock",
     }
     results = report["results"]
-    scalar, ngp, global_phase = results["scalar"], results["ngp19"], results["global"]
+    scalar, ngp, global_phase = results["scalar"], results["ngp-t"], results["global"]
     # Equal step budgets; the block variant includes the global phase it started from, in time and curve.
     assert scalar["steps"] == ngp["steps"] == 32 and global_phase["steps"] == 20
     assert scalar["curve"][: len(global_phase["curve"])] == global_phase["curve"]
     assert scalar["train_s"] > global_phase["train_s"]
-    for name in ("scalar", "ngp19"):
+    for name in ("scalar", "ngp-t"):
         steps = [p["step"] for p in results[name]["curve"]]
         times = [p["train_s"] for p in results[name]["curve"]]
         assert steps == [10, 20, 30, 32], f"{name}: evaluated every 10 steps and at the end"
@@ -80,26 +80,26 @@ def test_quick_benchmark_end_to_end(tmp_path: Path) -> None:
     assert list((Path(ngp["run_dir"]) / "nerfstudio_models").glob("step-*.ckpt"))
     # The same command with --resume trains nothing: every run is read back and reported the same.
     again = subprocess.run(
-        ["scalar-nerf-benchmark", "--quick", "--output-dir", str(output), "--variants", "ngp19", "scalar", "nerfacto",
+        ["scalar-nerf-benchmark", "--quick", "--output-dir", str(output), "--variants", "ngp-t", "scalar", "nerfacto",
          "--no-match-wall-clock", "--resume"],
         capture_output=True, text=True, timeout=300,
     )
     assert again.returncode == 0, again.stdout[-3000:] + again.stderr[-3000:]
-    assert again.stdout.count("reusing its finished run") == 4  # global, ngp19, scalar, nerfacto
+    assert again.stdout.count("reusing its finished run") == 4  # global, ngp-t, scalar, nerfacto
     reread = json.loads((output / "results.json").read_text())["results"]
-    for name in ("global", "ngp19", "scalar", "nerfacto"):
+    for name in ("global", "ngp-t", "scalar", "nerfacto"):
         assert reread[name]["final"] == results[name]["final"] and reread[name]["train_s"] == results[name]["train_s"], name
 
 
 def test_plan_and_budgets(tmp_path: Path) -> None:
     """Every block variant starts from the one global phase; budgets are equal; unknown names fail."""
     config = BenchmarkConfig(data=tmp_path, global_steps=400, block_steps=100, num_blocks=4,
-                             variants=("ngp19", "ngp21", "scalar", "scalar-wo-sd", "scalar-wo-ft", "scalar-s1.0"))
+                             variants=("ngp-t", "ngp-t2", "scalar", "scalar-wo-sd", "scalar-wo-ft", "scalar-s1.0"))
     variants, _ = plan(config)
     by_name = {v.name: v for v in variants}
     assert list(by_name)[0] == "global" and by_name["global"].overrides["pipeline.global_steps"] == 400
-    assert by_name["ngp19"].overrides["pipeline.global_steps"] == 800 == 400 + 4 * 100
-    assert by_name["ngp21"].overrides["pipeline.model.field.log2_hashmap_size"] == 21
+    assert by_name["ngp-t"].overrides["pipeline.global_steps"] == 800 == 400 + 4 * 100
+    assert by_name["ngp-t2"].overrides["pipeline.model.field.log2_hashmap_size"] == 21
     for name in ("scalar", "scalar-wo-sd", "scalar-wo-ft", "scalar-s1.0"):
         assert by_name[name].base == "global" and by_name[name].overrides["pipeline.global_steps"] == 0
         assert by_name[name].overrides["pipeline.block_log2_hashmap_size"] == 19
@@ -110,13 +110,91 @@ def test_plan_and_budgets(tmp_path: Path) -> None:
         plan(BenchmarkConfig(data=tmp_path, variants=("ngp18",)))
 
 
+def test_the_former_variant_names_are_accepted_and_mapped_to_the_new_ones(tmp_path: Path) -> None:
+    """``ngp19`` / ``ngp21`` (and the names derived from them) still work, as ``ngp-t`` / ``ngp-t2``: given to
+    the config or on the command line, in a check, and in the names of the wall-clock reruns."""
+    import tyro
+
+    from scalar_nerfstudio.benchmarking.variants import canonical_variant, check_options, former_variant_name
+
+    config = BenchmarkConfig(data=tmp_path, variants=("ngp19", "ngp21", "scalar"))
+    assert config.variants == ("ngp-t", "ngp-t2", "scalar")
+    by_name = {v.name: v for v in plan(config)[0]}
+    assert list(by_name) == ["global", "ngp-t", "ngp-t2", "scalar"]
+    assert by_name["ngp-t2"].overrides["pipeline.model.field.log2_hashmap_size"] == 21
+    parsed = tyro.cli(BenchmarkConfig, args=["--data", str(tmp_path), "--variants", "ngp19", "ngp21"])
+    assert parsed.variants == ("ngp-t", "ngp-t2")
+    config.variants = ("ngp21",)  # set after construction: checked and planned under its new name
+    check_options(config)
+    assert [v.name for v in plan(config)[0]] == ["ngp-t2"]
+    assert canonical_variant("ngp19-wall-clock-2") == "ngp-t-wall-clock-2" and canonical_variant("ngp21-wall-clock") == "ngp-t2-wall-clock"
+    assert canonical_variant("scalar") == "scalar" and canonical_variant("ngp18") == "ngp18"
+    assert former_variant_name("ngp-t2-wall-clock") == "ngp21-wall-clock" and former_variant_name("ngp-t") == "ngp19"
+    assert former_variant_name("scalar") is None
+
+
+def test_resume_reads_a_run_recorded_under_a_former_name(tmp_path: Path) -> None:
+    """``--resume`` reuses a finished run an earlier benchmark recorded as ``runs/ngp19.spec.json`` (its
+    spec otherwise the same) as ``ngp-t``; a changed spec is trained again."""
+    import dataclasses
+
+    from scalar_nerfstudio.benchmarking import schedule
+
+    runs = tmp_path / "bench" / "runs"
+    runs.mkdir(parents=True)
+    config = BenchmarkConfig(data=tmp_path, output_dir=tmp_path / "bench", log2_table=10, variants=("ngp-t",), resume=True)
+    variant = plan(config)[0][0]
+    assert variant.name == "ngp-t"
+    (runs / "ngp19.spec.json").write_text(json.dumps(variant_spec(config, dataclasses.replace(variant, name="ngp19"), runs, {})))
+    checkpoints = tmp_path / "run" / "nerfstudio_models"
+    checkpoints.mkdir(parents=True)
+    (checkpoints / "step-000001599.ckpt").write_bytes(b"")
+    (runs / "ngp19.json").write_text(json.dumps({"name": "ngp19", "steps": 1600, "train_s": 119.0, "run_dir": str(tmp_path / "run")}))
+
+    def run(config) -> dict:
+        with mock.patch.object(schedule.subprocess, "Popen", side_effect=RuntimeError("trains")):
+            try:
+                return schedule.run_variant(config, variant, runs, {}, mock.MagicMock(), 0)
+            except RuntimeError:
+                return {}
+
+    result = run(config)
+    assert result["reused"] and result["name"] == "ngp-t" and result["steps"] == 1600
+    config.seed = 1
+    assert run(config) == {}
+
+
+def test_a_report_of_runs_under_the_former_names_is_rewritten_with_the_new_ones(tmp_path: Path) -> None:
+    """``--from-results`` on a results.json whose variants have the former names labels their rows as before."""
+    from dataclasses import asdict
+
+    from scalar_nerfstudio.benchmarking.report import rewrite_report
+
+    def result(steps: int, train_s: float, psnr: float) -> dict:
+        return {"steps": steps, "train_s": train_s, "train_rays_per_s": 1000.0, "parameters": 10, "peak_rss_mib": 1.0,
+                "curve": [{"step": steps, "train_s": train_s, "psnr": psnr}],
+                "final": {"psnr": psnr, "ssim": 0.5, "render_ms_per_image": 1.0}}
+
+    config = {k: str(v) if isinstance(v, Path) else v for k, v in asdict(BenchmarkConfig(data=tmp_path, log2_table=10)).items()}
+    config["variants"] = ["ngp19", "ngp21"]
+    report = {"command": "scalar-nerf-benchmark", "machine": "2 CPU cores", "config": config, "rows": [],
+              "notes": {"ngp19-wall-clock": "trained again"},
+              "results": {"ngp19": result(1600, 119.0, 17.5), "ngp21": result(1600, 149.0, 17.9), "ngp19-wall-clock": result(1900, 140.0, 17.7)}}
+    (tmp_path / "results.json").write_text(json.dumps(report))
+    rewritten = rewrite_report(tmp_path)
+    assert list(rewritten["results"]) == ["ngp-t", "ngp-t2", "ngp-t-wall-clock"] and list(rewritten["notes"]) == ["ngp-t-wall-clock"]
+    assert {r["variant"]: r["label"] for r in rewritten["rows"]} == {
+        "ngp-t": "NGP_10 (one model, 2^10)", "ngp-t2": "NGP_12 (one model, 2^12)",
+        "ngp-t-wall-clock": "NGP_10 (one model, 2^10), trained for the blocks' wall-clock"}
+
+
 def test_fusions_option_sets_the_modes_every_block_variant_is_evaluated_with(tmp_path: Path) -> None:
     """``--fusions`` replaces each block variant's list of fusions (its first is the run's); the one-model
     runs and the global phase keep rendering one model; a mode that does not exist is refused by name."""
-    config = BenchmarkConfig(data=tmp_path, variants=("ngp19", "scalar", "scalar-wo-sd"), fusions=("nearest-guarded", "global-only"))
+    config = BenchmarkConfig(data=tmp_path, variants=("ngp-t", "scalar", "scalar-wo-sd"), fusions=("nearest-guarded", "global-only"))
     by_name = {v.name: v for v in plan(config)[0]}
     assert by_name["scalar"].fusions == by_name["scalar-wo-sd"].fusions == ["nearest-guarded", "global-only"]
-    assert by_name["ngp19"].fusions == by_name["global"].fusions == ["global"]
+    assert by_name["ngp-t"].fusions == by_name["global"].fusions == ["global"]
     spec = variant_spec(config, by_name["scalar"], tmp_path, {"global": {"checkpoint": "g.ckpt"}})
     assert spec["fusions"] == ["nearest-guarded", "global-only"]
     default = {v.name: v for v in plan(BenchmarkConfig(data=tmp_path, variants=("scalar",)))[0]}
@@ -165,10 +243,10 @@ def test_timing_helpers_time_steps_and_calls() -> None:
 
 
 def test_table_size_option_sets_every_table(tmp_path: Path) -> None:
-    config = BenchmarkConfig(data=tmp_path, log2_table=14, variants=("ngp19", "ngp21", "scalar"))
+    config = BenchmarkConfig(data=tmp_path, log2_table=14, variants=("ngp-t", "ngp-t2", "scalar"))
     by_name = {v.name: v for v in plan(config)[0]}
-    assert by_name["ngp19"].overrides["pipeline.model.field.log2_hashmap_size"] == 14
-    assert by_name["ngp21"].overrides["pipeline.model.field.log2_hashmap_size"] == 16
+    assert by_name["ngp-t"].overrides["pipeline.model.field.log2_hashmap_size"] == 14
+    assert by_name["ngp-t2"].overrides["pipeline.model.field.log2_hashmap_size"] == 16
     assert by_name["scalar"].overrides["pipeline.block_log2_hashmap_size"] == 14
     assert "global-only" in by_name["scalar"].fusions and "surface" in by_name["scalar"].fusions
     assert all("pipeline.model.field.hidden_dim" not in v.overrides for v in by_name.values())  # the field's default
@@ -179,10 +257,10 @@ def test_decoder_width_option_reaches_every_variant_of_ours_and_the_report(tmp_p
     global phase, NGP_T, NGP_{T+2} and the block variants, not on nerfacto; the report states it."""
     from scalar_nerfstudio.benchmarking.report import decoder_width_used, markdown
 
-    config = BenchmarkConfig(data=tmp_path, decoder_width=128, variants=("ngp19", "ngp21", "scalar", "nerfacto"))
+    config = BenchmarkConfig(data=tmp_path, decoder_width=128, variants=("ngp-t", "ngp-t2", "scalar", "nerfacto"))
     by_name = {v.name: v for v in plan(config)[0]}
     assert {name for name, v in by_name.items() if v.overrides.get("pipeline.model.field.hidden_dim") == 128} == {
-        "global", "ngp19", "ngp21", "scalar"}
+        "global", "ngp-t", "ngp-t2", "scalar"}
     assert "pipeline.model.field.hidden_dim" not in by_name["nerfacto"].overrides
     assert decoder_width_used(config) == 128 and decoder_width_used(BenchmarkConfig(data=tmp_path)) == 64
     assert "decoder 128 wide" in markdown(config, [], {}, "cmd", "2 CPU cores", {}, decoder_width=128)
@@ -200,11 +278,11 @@ def test_the_report_shows_depth_where_the_scene_has_it(tmp_path: Path) -> None:
             final["depth_delta1"] = depth
         return {"final": final, "steps": 100, "train_s": 1.0, "train_rays_per_s": 1.0, "parameters": 1, "peak_rss_mib": 1.0}
 
-    config = BenchmarkConfig(data=tmp_path, variants=("ngp19", "ngp21"))
-    with_depth = markdown(config, rows({"ngp19": result(18.0, 0.318), "ngp21": result(19.1, 0.456)}), {}, "cmd", "2 CPU cores")
+    config = BenchmarkConfig(data=tmp_path, variants=("ngp-t", "ngp-t2"))
+    with_depth = markdown(config, rows({"ngp-t": result(18.0, 0.318), "ngp-t2": result(19.1, 0.456)}), {}, "cmd", "2 CPU cores")
     assert "depth within 25 % |" in with_depth
     assert "| 19.10 | 0.500 | 45.6% |" in with_depth and "| 18.00 | 0.500 | 31.8% |" in with_depth
-    without = markdown(config, rows({"ngp19": result(18.0), "ngp21": result(19.1)}), {}, "cmd", "2 CPU cores")
+    without = markdown(config, rows({"ngp-t": result(18.0), "ngp-t2": result(19.1)}), {}, "cmd", "2 CPU cores")
     assert "depth within" not in without and "| 19.10 | 0.500 | 10 |" in without
 
 
@@ -229,8 +307,8 @@ def test_a_run_renders_with_the_first_fusion_it_reports(tmp_path: Path) -> None:
     assert fitted.overrides == {**by_name["auto"].overrides, "pipeline.block_init": "fitted"} and fitted.base == "global"
     assert by_name["scalar-fitted"].overrides["pipeline.block_init"] == "fitted" and by_name["scalar-fitted"].fusions[0] == "nearest"
     config = BenchmarkConfig(data=tmp_path, variants=("auto", "auto-fitted"))
-    with mock.patch("scalar_nerfstudio.benchmarking.variants.auto_k", return_value=1):  # both are one model then: ngp19, once
-        assert [v.name for v in plan(config)[0]] == ["global", "ngp19"]
+    with mock.patch("scalar_nerfstudio.benchmarking.variants.auto_k", return_value=1):  # both are one model then: ngp-t, once
+        assert [v.name for v in plan(config)[0]] == ["global", "ngp-t"]
 
 
 def test_equal_wall_clock_reads_the_one_model_curve_at_the_parallel_time() -> None:
@@ -241,7 +319,7 @@ def test_equal_wall_clock_reads_the_one_model_curve_at_the_parallel_time() -> No
     assert psnr_at(curve, 20.0) == (20.0, 200.0)
     assert psnr_at(curve, 5.0) is None and psnr_at(curve, 25.0) is None
     table = [{"label": "SCALAR", "fusion": "global", "psnr": 21.0, "parallel_train_s": 15.0}, {"label": "NGP", "fusion": "global", "psnr": 20.0}]
-    lines = "\n".join(equal_wall_clock({"ngp19": {"curve": curve}}, table, log2_table=14))
+    lines = "\n".join(equal_wall_clock({"ngp-t": {"curve": curve}}, table, log2_table=14))
     assert "| SCALAR | global | 15 | 21.00 |" in lines and "NGP_14 (one model, 2^14) at the same wall-clock | - | 15 | 19.00 (step 150) |" in lines
 
 
@@ -252,7 +330,7 @@ def test_equal_wall_clock_says_when_a_one_model_run_ended_before_that_time() -> 
 
     curve = [{"step": 100, "train_s": 10.0, "psnr": 18.0}, {"step": 200, "train_s": 20.0, "psnr": 20.0}]
     table = [{"label": "SCALAR", "fusion": "nearest", "psnr": 21.0, "parallel_train_s": 22.0}]
-    lines = "\n".join(equal_wall_clock({"ngp19": {"curve": curve}}, table, log2_table=12))
+    lines = "\n".join(equal_wall_clock({"ngp-t": {"curve": curve}}, table, log2_table=12))
     assert "| NGP_12 (one model, 2^12) at the same wall-clock | - | 22 | 20.00: it ended earlier, at 20 s (step 200) |" in lines
 
 
@@ -264,8 +342,8 @@ def test_the_wall_clock_rerun_stands_only_for_a_time_its_first_run_ended_before(
     from scalar_nerfstudio.benchmarking.report import equal_wall_clock
 
     results = {
-        "ngp19": {"curve": [{"step": 1600, "train_s": 348.0, "psnr": 17.55}]},
-        "ngp19-wall-clock": {"steps": 2113, "train_s": 378.0, "final": {"psnr": 17.88}},
+        "ngp-t": {"curve": [{"step": 1600, "train_s": 348.0, "psnr": 17.55}]},
+        "ngp-t-wall-clock": {"steps": 2113, "train_s": 378.0, "final": {"psnr": 17.88}},
     }
     table = [{"label": "parallel", "fusion": "nearest-guarded", "psnr": 19.07, "parallel_train_s": 417.0},
              {"label": "equal steps", "fusion": "nearest-guarded", "psnr": 17.73, "parallel_train_s": 254.0}]
@@ -280,20 +358,20 @@ def test_a_one_model_run_that_ended_before_the_blocks_is_trained_again_for_their
     that ended within 3 % of that time, or --no-match-wall-clock, trains nothing more."""
     from scalar_nerfstudio.benchmarking.variants import wall_clock_variants
 
-    config = BenchmarkConfig(data=tmp_path, global_steps=900, block_steps=175, num_blocks=4, log2_table=10, variants=("ngp19", "ngp21"))
+    config = BenchmarkConfig(data=tmp_path, global_steps=900, block_steps=175, num_blocks=4, log2_table=10, variants=("ngp-t", "ngp-t2"))
     variants = plan(config)[0]
     results = {
-        "ngp19": {"steps": 1600, "train_s": 119.0}, "ngp21": {"steps": 1600, "train_s": 149.0},
+        "ngp-t": {"steps": 1600, "train_s": 119.0}, "ngp-t2": {"steps": 1600, "train_s": 149.0},
         "global": {"steps": 900, "train_s": 63.0}, "auto-parallel": {"steps": 7700, "train_s": 658.0, "parallel_train_s": 140.0},
     }
     (again, note), = wall_clock_variants(config, variants, results)
-    first = {v.name: v for v in variants}["ngp19"]
-    assert again.name == "ngp19-wall-clock" and again.method == first.method and again.eval_every == 0
+    first = {v.name: v for v in variants}["ngp-t"]
+    assert again.name == "ngp-t-wall-clock" and again.method == first.method and again.eval_every == 0
     assert again.overrides == {**first.overrides, "pipeline.global_steps": 1883}  # ceil(140 s x 1600 / 119 s)
     assert "1883 steps" in note and "119 s" in note and "140 s" in note
-    results["ngp19"]["train_s"] = 136.0  # within 3 % of 140 s: read at its end
+    results["ngp-t"]["train_s"] = 136.0  # within 3 % of 140 s: read at its end
     assert wall_clock_variants(config, variants, results) == []
-    results["ngp19"]["train_s"] = 119.0
+    results["ngp-t"]["train_s"] = 119.0
     config.match_wall_clock = False
     assert wall_clock_variants(config, variants, results) == []
     config.match_wall_clock = True
@@ -307,30 +385,30 @@ def test_the_benchmark_trains_the_wall_clock_run_after_the_others_and_reports_it
     from scalar_nerfstudio.benchmarking import schedule
     from scalar_nerfstudio.benchmarking.report import equal_wall_clock, rows
 
-    config = BenchmarkConfig(data=tmp_path, output_dir=tmp_path / "bench", log2_table=10, variants=("ngp19",))
+    config = BenchmarkConfig(data=tmp_path, output_dir=tmp_path / "bench", log2_table=10, variants=("ngp-t",))
     (tmp_path / "bench" / "runs").mkdir(parents=True)
     variants = plan(config)[0]
     parallel = {"steps": 7700, "train_s": 658.0, "parallel_train_s": 140.0, "curve": [], "final": {"psnr": 19.14}}
 
     def fake_run(config, variant, runs, results, progress, task):
-        if variant.name == "ngp19":
+        if variant.name == "ngp-t":
             results["auto-parallel"] = parallel  # as if a block variant had run before it
             return {"steps": 1600, "train_s": 119.0, "curve": [{"step": 1600, "train_s": 119.0, "psnr": 17.65}], "final": {"psnr": 17.65}}
-        assert variant.name == "ngp19-wall-clock" and variant.overrides["pipeline.global_steps"] == 1883
+        assert variant.name == "ngp-t-wall-clock" and variant.overrides["pipeline.global_steps"] == 1883
         return {"steps": 1883, "train_s": 141.0, "curve": [{"step": 1883, "train_s": 141.0, "psnr": 18.11}], "final": {"psnr": 18.11}}
 
     notes: dict = {}
     with mock.patch.object(schedule, "run_variant", side_effect=fake_run) as run:
         results = schedule.run_variants(config, variants, notes)
-    assert [c.args[1].name for c in run.call_args_list] == ["ngp19", "ngp19-wall-clock"]
-    assert "1883 steps" in notes["ngp19-wall-clock"]
+    assert [c.args[1].name for c in run.call_args_list] == ["ngp-t", "ngp-t-wall-clock"]
+    assert "1883 steps" in notes["ngp-t-wall-clock"]
     table = [{"label": "blocks", "fusion": "nearest-guarded", "psnr": 19.14, "parallel_train_s": 140.0}]
     lines = "\n".join(equal_wall_clock(results, table, log2_table=10))
     assert "| NGP_10 (one model, 2^10) at the same wall-clock | - | 140 | **18.11**: trained again for this wall-clock, 1883 steps in 141 s |" in lines
-    results["ngp19-wall-clock"].update({"fusions": None, "train_rays_per_s": 1.0, "parameters": 1, "peak_rss_mib": 1.0})
-    results["ngp19-wall-clock"]["final"].update({"ssim": 0.4, "render_ms_per_image": 1.0})
-    labelled = {r["variant"]: r["label"] for r in rows({"ngp19-wall-clock": results["ngp19-wall-clock"]}, log2_table=10)}
-    assert labelled == {"ngp19-wall-clock": "NGP_10 (one model, 2^10), trained for the blocks' wall-clock"}
+    results["ngp-t-wall-clock"].update({"fusions": None, "train_rays_per_s": 1.0, "parameters": 1, "peak_rss_mib": 1.0})
+    results["ngp-t-wall-clock"]["final"].update({"ssim": 0.4, "render_ms_per_image": 1.0})
+    labelled = {r["variant"]: r["label"] for r in rows({"ngp-t-wall-clock": results["ngp-t-wall-clock"]}, log2_table=10)}
+    assert labelled == {"ngp-t-wall-clock": "NGP_10 (one model, 2^10), trained for the blocks' wall-clock"}
 
 
 def test_a_wall_clock_run_that_ends_away_from_the_blocks_is_planned_again_from_its_own_pace(tmp_path: Path) -> None:
@@ -339,16 +417,16 @@ def test_a_wall_clock_run_that_ends_away_from_the_blocks_is_planned_again_from_i
     lists both. A run within 3 % is read at once; --wall-clock-tries 1 keeps the first rerun."""
     from scalar_nerfstudio.benchmarking import schedule
 
-    config = BenchmarkConfig(data=tmp_path, output_dir=tmp_path / "bench", log2_table=10, variants=("ngp19",))
+    config = BenchmarkConfig(data=tmp_path, output_dir=tmp_path / "bench", log2_table=10, variants=("ngp-t",))
     (tmp_path / "bench" / "runs").mkdir(parents=True)
     variants = plan(config)[0]
     parallel = {"steps": 7700, "train_s": 658.0, "parallel_train_s": 140.0, "curve": [], "final": {"psnr": 19.14}}
-    ends = {"ngp19-wall-clock": (1883, 128.0, 18.00), "ngp19-wall-clock-2": (2060, 139.0, 18.10)}
+    ends = {"ngp-t-wall-clock": (1883, 128.0, 18.00), "ngp-t-wall-clock-2": (2060, 139.0, 18.10)}
 
     def fake_run(config, variant, runs, results, progress, task):
-        if variant.name == "ngp19":
+        if variant.name == "ngp-t":
             results["auto-parallel"] = parallel
-            return {"name": "ngp19", "steps": 1600, "train_s": 119.0, "curve": [], "final": {"psnr": 17.65}}
+            return {"name": "ngp-t", "steps": 1600, "train_s": 119.0, "curve": [], "final": {"psnr": 17.65}}
         steps, seconds, psnr = ends[variant.name]
         assert variant.overrides["pipeline.global_steps"] == steps  # 1883 = ceil(140 x 1600 / 119); 2060 = ceil(140 x 1883 / 128)
         return {"name": variant.name, "steps": steps, "train_s": seconds, "curve": [], "final": {"psnr": psnr}}
@@ -356,23 +434,23 @@ def test_a_wall_clock_run_that_ends_away_from_the_blocks_is_planned_again_from_i
     notes: dict = {}
     with mock.patch.object(schedule, "run_variant", side_effect=fake_run) as run:
         results = schedule.run_variants(config, variants, notes)
-    assert [c.args[1].name for c in run.call_args_list] == ["ngp19", "ngp19-wall-clock", "ngp19-wall-clock-2"]
-    assert results["ngp19-wall-clock"]["steps"] == 2060 and results["ngp19-wall-clock"]["final"]["psnr"] == 18.10
-    assert "ngp19-wall-clock-2" not in results
-    note = notes["ngp19-wall-clock"]
-    assert "1883 steps in 128 s, 18.00 dB" in note and "2060 steps in 139 s, 18.10 dB" in note and "read: ngp19-wall-clock-2" in note
+    assert [c.args[1].name for c in run.call_args_list] == ["ngp-t", "ngp-t-wall-clock", "ngp-t-wall-clock-2"]
+    assert results["ngp-t-wall-clock"]["steps"] == 2060 and results["ngp-t-wall-clock"]["final"]["psnr"] == 18.10
+    assert "ngp-t-wall-clock-2" not in results
+    note = notes["ngp-t-wall-clock"]
+    assert "1883 steps in 128 s, 18.00 dB" in note and "2060 steps in 139 s, 18.10 dB" in note and "read: ngp-t-wall-clock-2" in note
 
-    ends["ngp19-wall-clock"] = (1883, 137.0, 18.05)  # within 3 % of 140 s: no second run
+    ends["ngp-t-wall-clock"] = (1883, 137.0, 18.05)  # within 3 % of 140 s: no second run
     with mock.patch.object(schedule, "run_variant", side_effect=fake_run) as run:
         results = schedule.run_variants(config, plan(config)[0], {})
-    assert [c.args[1].name for c in run.call_args_list] == ["ngp19", "ngp19-wall-clock"]
+    assert [c.args[1].name for c in run.call_args_list] == ["ngp-t", "ngp-t-wall-clock"]
 
-    ends["ngp19-wall-clock"] = (1883, 128.0, 18.00)
+    ends["ngp-t-wall-clock"] = (1883, 128.0, 18.00)
     config.wall_clock_tries = 1
     with mock.patch.object(schedule, "run_variant", side_effect=fake_run) as run:
         results = schedule.run_variants(config, plan(config)[0], {})
-    assert [c.args[1].name for c in run.call_args_list] == ["ngp19", "ngp19-wall-clock"]
-    assert results["ngp19-wall-clock"]["steps"] == 1883
+    assert [c.args[1].name for c in run.call_args_list] == ["ngp-t", "ngp-t-wall-clock"]
+    assert results["ngp-t-wall-clock"]["steps"] == 1883
 
 
 def test_the_wall_clock_runs_stop_at_the_tries_allowed_and_read_the_nearest() -> None:
@@ -381,19 +459,19 @@ def test_the_wall_clock_runs_stop_at_the_tries_allowed_and_read_the_nearest() ->
     from scalar_nerfstudio.benchmarking.variants import Variant, nearest_to_wall_clock, wall_clock_retry
 
     config = BenchmarkConfig(wall_clock_tries=3)
-    first = Variant("ngp19-wall-clock", "scalar-nerf", {"pipeline.global_steps": 1915}, eval_every=0)
+    first = Variant("ngp-t-wall-clock", "scalar-nerf", {"pipeline.global_steps": 1915}, eval_every=0)
     tried = [(first, {"steps": 1915, "train_s": 378.0, "final": {"psnr": 17.74}})]
     second = wall_clock_retry(config, tried, 417.0)
-    assert second.name == "ngp19-wall-clock-2" and second.overrides["pipeline.global_steps"] == 2113  # ceil(417 x 1915 / 378)
+    assert second.name == "ngp-t-wall-clock-2" and second.overrides["pipeline.global_steps"] == 2113  # ceil(417 x 1915 / 378)
     assert second.eval_every == 0 and second.method == "scalar-nerf"
     tried.append((second, {"steps": 2113, "train_s": 436.0, "final": {"psnr": 17.90}}))
     third = wall_clock_retry(config, tried, 417.0)
-    assert third.name == "ngp19-wall-clock-3" and third.overrides["pipeline.global_steps"] == 2021  # ceil(417 x 2113 / 436)
+    assert third.name == "ngp-t-wall-clock-3" and third.overrides["pipeline.global_steps"] == 2021  # ceil(417 x 2113 / 436)
     tried.append((third, {"steps": 2021, "train_s": 400.0, "final": {"psnr": 17.85}}))
     assert wall_clock_retry(config, tried, 417.0) is None  # three runs: the most allowed
     chosen, note = nearest_to_wall_clock(tried, 417.0)
     assert chosen["steps"] == 2021  # 17 s before it, against 19 s after and 39 s before
-    assert note.startswith("3 run(s) for the blocks' 417 s") and note.endswith("read: ngp19-wall-clock-3")
+    assert note.startswith("3 run(s) for the blocks' 417 s") and note.endswith("read: ngp-t-wall-clock-3")
     tried[1][1]["train_s"] = 400.0  # as near as the third run, with more steps: read
     assert nearest_to_wall_clock(tried, 417.0)[0]["steps"] == 2113
     # a pace that plans a step count already tried ends the tries: ceil(417 x 2113 / 460.24) = 1915
@@ -414,13 +492,13 @@ def test_resume_reuses_a_finished_run_of_the_same_spec_and_trains_a_changed_one(
 
     runs = tmp_path / "bench" / "runs"
     runs.mkdir(parents=True)
-    config = BenchmarkConfig(data=tmp_path, output_dir=tmp_path / "bench", log2_table=10, variants=("ngp19",), resume=True)
+    config = BenchmarkConfig(data=tmp_path, output_dir=tmp_path / "bench", log2_table=10, variants=("ngp-t",), resume=True)
     variant = plan(config)[0][0]
-    spec_path, result_path = runs / "ngp19.spec.json", runs / "ngp19.json"
+    spec_path, result_path = runs / "ngp-t.spec.json", runs / "ngp-t.json"
     checkpoints = tmp_path / "run" / "nerfstudio_models"
     checkpoints.mkdir(parents=True)
     (checkpoints / "step-000001599.ckpt").write_bytes(b"")
-    finished = {"name": "ngp19", "steps": 1600, "train_s": 119.0, "final": {"psnr": 17.65}, "run_dir": str(tmp_path / "run")}
+    finished = {"name": "ngp-t", "steps": 1600, "train_s": 119.0, "final": {"psnr": 17.65}, "run_dir": str(tmp_path / "run")}
     stopped = RuntimeError("stopped")  # the subprocess that would train it
 
     def run(config) -> dict:
@@ -464,10 +542,10 @@ def test_resume_reads_a_block_variant_with_its_global_phase_once_and_notes_every
     runs = output / "runs"
     runs.mkdir(parents=True)
     config = BenchmarkConfig(data=tmp_path, output_dir=output, log2_table=10, global_steps=900, block_steps=175, num_blocks=4,
-                             parallel_block_steps=850, eval_every=1600, variants=("ngp19", "auto-parallel"), resume=True)
+                             parallel_block_steps=850, eval_every=1600, variants=("ngp-t", "auto-parallel"), resume=True)
     with mock.patch("scalar_nerfstudio.benchmarking.variants.auto_k", return_value=8):
         variants = plan(config)[0]
-    assert [v.name for v in variants] == ["global", "ngp19", "auto-parallel"]
+    assert [v.name for v in variants] == ["global", "ngp-t", "auto-parallel"]
 
     def finished(name: str, steps: int, train_s: float, psnr: float, **extra) -> dict:
         run_dir = tmp_path / "run" / name
@@ -484,24 +562,24 @@ def test_resume_reads_a_block_variant_with_its_global_phase_once_and_notes_every
     by_name = {v.name: v for v in variants}
     save(by_name["global"], finished("global", 900, 200.0, 17.1), earlier)
     earlier["global"] = {**finished("global", 900, 200.0, 17.1), "checkpoint": str(tmp_path / "run" / "global" / "nerfstudio_models" / "step-000000899.ckpt")}
-    save(by_name["ngp19"], finished("ngp19", 1600, 350.0, 17.5), earlier)
+    save(by_name["ngp-t"], finished("ngp-t", 1600, 350.0, 17.5), earlier)
     save(by_name["auto-parallel"], finished("auto-parallel", 6800, 1600.0, 19.0, num_blocks=8, block_train_s={"0": 200.0, "1": 210.0}), earlier)
-    first_rerun = schedule.wall_clock_variants(config, variants, {**earlier, "ngp19": finished("ngp19", 1600, 350.0, 17.5),
+    first_rerun = schedule.wall_clock_variants(config, variants, {**earlier, "ngp-t": finished("ngp-t", 1600, 350.0, 17.5),
                                                                    "auto-parallel": {"parallel_train_s": 410.0}})[0][0]
     assert first_rerun.overrides["pipeline.global_steps"] == 1875  # ceil(410 x 1600 / 350)
-    save(first_rerun, finished("ngp19-wall-clock", 1875, 380.0, 17.7), earlier)  # 7 % short of 410 s
+    save(first_rerun, finished("ngp-t-wall-clock", 1875, 380.0, 17.7), earlier)  # 7 % short of 410 s
 
     def fake_train(config, variant, runs, results, progress, task):
-        assert variant.name == "ngp19-wall-clock-2", f"{variant.name} should have been reused"
+        assert variant.name == "ngp-t-wall-clock-2", f"{variant.name} should have been reused"
         assert variant.overrides["pipeline.global_steps"] == 2024  # ceil(410 x 1875 / 380)
-        return finished("ngp19-wall-clock-2", 2024, 408.0, 17.8)
+        return finished("ngp-t-wall-clock-2", 2024, 408.0, 17.8)
 
     notes: dict = {}
     real_run_variant = schedule.run_variant
     trained = []
 
     def run_or_reuse(config, variant, runs, results, progress, task):
-        result = real_run_variant(config, variant, runs, results, progress, task) if variant.name != "ngp19-wall-clock-2" else None
+        result = real_run_variant(config, variant, runs, results, progress, task) if variant.name != "ngp-t-wall-clock-2" else None
         if result is None:
             trained.append(variant.name)
             return fake_train(config, variant, runs, results, progress, task)
@@ -510,14 +588,14 @@ def test_resume_reads_a_block_variant_with_its_global_phase_once_and_notes_every
     with mock.patch.object(schedule, "run_variant", side_effect=run_or_reuse), \
             mock.patch.object(schedule.subprocess, "Popen", side_effect=AssertionError("nothing but the second rerun trains")):
         results = schedule.run_variants(config, variants, notes)
-    assert trained == ["ngp19-wall-clock-2"]
+    assert trained == ["ngp-t-wall-clock-2"]
     blocks = results["auto-parallel"]
     assert blocks["steps"] == 900 + 6800 and blocks["parallel_train_s"] == 200.0 + 210.0  # the global phase counted once
     assert results["global"]["checkpoint"].endswith("step-000000899.ckpt")
-    assert results["ngp19-wall-clock"]["steps"] == 2024
-    for name in ("global", "ngp19", "auto-parallel"):
+    assert results["ngp-t-wall-clock"]["steps"] == 2024
+    for name in ("global", "ngp-t", "auto-parallel"):
         assert "reused (--resume)" in notes[name], name
-    assert "ngp19-wall-clock: reused (--resume)" in notes["ngp19-wall-clock"] and "read: ngp19-wall-clock-2" in notes["ngp19-wall-clock"]
+    assert "ngp-t-wall-clock: reused (--resume)" in notes["ngp-t-wall-clock"] and "read: ngp-t-wall-clock-2" in notes["ngp-t-wall-clock"]
 
 
 def test_parallel_budget_gives_every_block_the_steps_one_model_trains_after_the_global_phase(tmp_path: Path) -> None:
@@ -545,7 +623,7 @@ def test_parallel_budget_gives_every_block_the_steps_one_model_trains_after_the_
     with mock.patch("scalar_nerfstudio.benchmarking.variants.auto_k", return_value=8):
         assert {v.name: v for v in plan(config)[0]}["auto-parallel"].overrides["pipeline.block_steps"] == 900
     with mock.patch("scalar_nerfstudio.benchmarking.variants.auto_k", return_value=1):
-        assert [v.name for v in plan(config)[0]] == ["global", "ngp19"]
+        assert [v.name for v in plan(config)[0]] == ["global", "ngp-t"]
     config.parallel_block_steps = 0
     with pytest.raises(SystemExit, match="--parallel-block-steps 0"):
         plan(config)
@@ -691,10 +769,10 @@ def test_the_same_spec_trains_the_same_model_and_another_seed_another(scene: Pat
     with pytest.raises(FusionModeError, match="block index out of range, there are 1 blocks"):
         run(spec)
     assert not (tmp_path / "bad.json").exists() and not list((tmp_path / "bad").rglob("*.ckpt"))
-    config = BenchmarkConfig(data=tmp_path, variants=("ngp19", "auto"), seed=7)
+    config = BenchmarkConfig(data=tmp_path, variants=("ngp-t", "auto"), seed=7)
     with mock.patch("scalar_nerfstudio.benchmarking.variants.auto_k", return_value=3):
         specs = [variant_spec(config, v, tmp_path, {"global": {"checkpoint": "g.ckpt"}}) for v in plan(config)[0]]
-    assert [spec["overrides"]["machine.seed"] for spec in specs] == [7, 7, 7]  # global, ngp19, auto
+    assert [spec["overrides"]["machine.seed"] for spec in specs] == [7, 7, 7]  # global, ngp-t, auto
 
 
 def test_train_vs_heldout_refuses_bad_options(tmp_path: Path) -> None:
@@ -705,3 +783,20 @@ def test_train_vs_heldout_refuses_bad_options(tmp_path: Path) -> None:
     result = subprocess.run([sys.executable, script, "--load-config", str(tmp_path / "config.yml"), "--every", "0"],
                             capture_output=True, text=True, timeout=120)
     assert result.returncode != 0 and "--every 0: must be >= 1" in result.stderr
+
+
+def test_the_method_never_imports_the_lab() -> None:
+    """No module of the method (anything under scalar_nerfstudio/ but scripts/, benchmarking/ and scenes/)
+    imports the benchmark harness or the scene generators, not even inside a function."""
+    import ast
+
+    package = REPO / "scalar_nerfstudio"
+    lab = ("scalar_nerfstudio.benchmarking", "scalar_nerfstudio.scenes")
+    offenders = []
+    for path in sorted(package.rglob("*.py")):
+        if path.relative_to(package).parts[0] in ("scripts", "benchmarking", "scenes"):
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else [node.module or ""] if isinstance(node, ast.ImportFrom) else []
+            offenders += [f"{path.relative_to(REPO)}: {name}" for name in names if name.startswith(lab)]
+    assert not offenders, offenders

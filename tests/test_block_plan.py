@@ -10,7 +10,7 @@ import pytest
 
 from scalar_nerfstudio.blocks.plan import PlanSettings, load_plan, plan_blocks, save_plan
 from scalar_nerfstudio.blocks.split import BlockSplitError, load_blocks_json, save_blocks_json
-from scalar_nerfstudio.data.synthetic_scene import look_at
+from scalar_nerfstudio.scenes.courtyard import look_at
 
 
 def _walk(num: int = 24, length: float = 20.0) -> np.ndarray:

@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from scalar_nerfstudio.blocks.capacity import auto_num_blocks, block_capacity, layout_scale
-from scalar_nerfstudio.data.synthetic_scene import look_at
+from scalar_nerfstudio.scenes.courtyard import look_at
 from conftest import CASTLE, SHARED_DATA, tiny_trainer
 
 FOX = SHARED_DATA / "fox"
@@ -88,7 +88,7 @@ def test_a_street_rig_is_not_taken_for_converging_views() -> None:
     """A town's rig looks every way along the streets, and two cameras stand at each stop: their
     least-squares axis point lies in front of the cameras on average but in view of almost none, so
     the viewing distance falls back to half the extent (it was 0.66 m, giving K = 8 for any table)."""
-    from scalar_nerfstudio.data.town_scene import TownConfig, build_town, town_camera_poses
+    from scalar_nerfstudio.scenes.town import TownConfig, build_town, town_camera_poses
 
     config = TownConfig(num_images=300, width=128, height=96, blocks_x=2, blocks_y=2)
     poses = town_camera_poses(build_town(config))

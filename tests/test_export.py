@@ -23,7 +23,7 @@ from nerfstudio.cameras.cameras import Cameras, CameraType
 from torch import Tensor
 
 from conftest import ns_train_command, ray_bundle, run_dirs, small_scalar_model, tiny_trainer
-from scalar_nerfstudio.data.synthetic_scene import DEFAULT_BOXES, write_scene
+from scalar_nerfstudio.scenes.courtyard import DEFAULT_BOXES, write_scene
 from scalar_nerfstudio.fields.scalar_field import encode_with_position_gradients
 from scalar_nerfstudio.model_components.rendering import (
     normals_from_unit_interval,

@@ -12,10 +12,10 @@ import pytest
 import torch
 
 from conftest import tiny_trainer
-from scalar_nerfstudio.engine import memory
+from scalar_nerfstudio.engine import allocator, memory
 from scalar_nerfstudio.engine.memory import HeapRelease, release_freed_memory, resident_mib
 
-GLIBC = sys.platform.startswith("linux") and memory._malloc_trim() is not None
+GLIBC = sys.platform.startswith("linux") and allocator._malloc_trim() is not None
 
 
 @pytest.mark.skipif(not GLIBC, reason="malloc_trim is glibc's")

@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from conftest import free_port, ns_eval, ns_train_command, run_dirs, sigkill_after_checkpoint, trained_block_tensors
-from scalar_nerfstudio.data.town_scene import TownConfig, write_town
+from scalar_nerfstudio.scenes.town import TownConfig, write_town
 from scalar_nerfstudio.runs import block_model_path, block_models_dir, latest_checkpoint_step
 
 NUM_BLOCKS, GLOBAL_STEPS, BLOCK_STEPS = 64, 30, 2

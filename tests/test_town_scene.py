@@ -1,4 +1,4 @@
-"""The procedural town scene (scalar_nerfstudio/data/town_scene.py) and scalar-nerf-make-scene.
+"""The procedural town scene (scalar_nerfstudio/scenes/town/) and scalar-nerf-make-scene.
 
 All sizes are tiny: no training, a few seconds in all.
 """
@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import torch
 
-from scalar_nerfstudio.data.town_scene import (
+from scalar_nerfstudio.scenes.town import (
     DEPTH_PNG_MAX_M,
     GROUND,
     TownConfig,
@@ -61,6 +61,22 @@ def test_same_seed_writes_byte_identical_files(tiny_scene: Path, tmp_path: Path)
     assert len([f for f in files if f.parts[0] == "depths"]) == TINY.num_images
     for name in files:
         assert (tiny_scene / name).read_bytes() == (again / name).read_bytes(), f"{name} differs between two writes with the same seed"
+
+
+def test_the_town_leaves_malloc_alone_when_the_user_tuned_it(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The opt-out of engine/allocator.py holds for the scene generator too: with any of glibc's malloc
+    variables set, writing a town never reaches mallopt."""
+    from unittest import mock
+
+    from scalar_nerfstudio.engine import allocator
+
+    for name in allocator.GLIBC_MALLOC_ENV:
+        monkeypatch.setenv(name, "1")
+        assert not allocator.keep_render_temporaries() and not allocator.keep_freed_memory()
+        monkeypatch.delenv(name)
+    monkeypatch.setenv("MALLOC_TRIM_THRESHOLD_", "1048576")
+    with mock.patch.object(allocator, "_glibc", side_effect=AssertionError("mallopt reached")):
+        write_town(tmp_path / "scene", dataclasses.replace(TINY, num_images=1), progress=False)
 
 
 def test_other_seed_differs(tiny_scene: Path, tmp_path: Path) -> None:

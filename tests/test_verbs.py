@@ -21,7 +21,7 @@ from PIL import Image
 
 from conftest import ns_eval, ns_train_command, run_dirs, viewer_page
 from scalar_nerfstudio.blocks.plan import load_plan
-from scalar_nerfstudio.data.synthetic_scene import write_scene
+from scalar_nerfstudio.scenes.courtyard import write_scene
 
 pytestmark = pytest.mark.slow
 

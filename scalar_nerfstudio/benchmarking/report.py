@@ -15,7 +15,9 @@ from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
 
 from scalar_nerfstudio.atomic_io import atomic_write_text
-from scalar_nerfstudio.benchmarking.variants import WALL_CLOCK_SUFFIX, BenchmarkConfig, parallel_block_steps
+from scalar_nerfstudio.benchmarking.variants import (
+    ONE_MODEL_VARIANTS, WALL_CLOCK_SUFFIX, BenchmarkConfig, canonical_variant, parallel_block_steps,
+)
 
 __all__ = [
     "LABELS", "describe_machine", "equal_wall_clock", "labels", "markdown", "on_pareto_front", "plots", "psnr_at",
@@ -24,8 +26,8 @@ __all__ = [
 
 #: Rows of the report at the paper's T = 19: (variant, fusion) -> label (see :func:`labels`).
 LABELS: Dict[Tuple[str, str], str] = {
-    ("ngp19", "global"): "NGP_19 (one model, 2^19)",
-    ("ngp21", "global"): "NGP_21 (one model, 2^21)",
+    ("ngp-t", "global"): "NGP_19 (one model, 2^19)",
+    ("ngp-t2", "global"): "NGP_21 (one model, 2^21)",
     ("scalar", "global"): "SCALAR-NeRF (blocks + global fusion)",
     ("scalar", "surface"): "blocks + surface fusion (same models)",
     ("scalar", "idw"): "blocks + IDW (same models)",
@@ -69,9 +71,9 @@ LABELS: Dict[Tuple[str, str], str] = {
 def labels(log2_table: int = 19) -> Dict[Tuple[str, str], str]:
     """:data:`LABELS` for tables of 2^``log2_table`` (NGP_T and NGP_{T+2})."""
     out = dict(LABELS)
-    out[("ngp19", "global")] = f"NGP_{log2_table} (one model, 2^{log2_table})"
-    out[("ngp21", "global")] = f"NGP_{log2_table + 2} (one model, 2^{log2_table + 2})"
-    for name in ("ngp19", "ngp21"):
+    out[("ngp-t", "global")] = f"NGP_{log2_table} (one model, 2^{log2_table})"
+    out[("ngp-t2", "global")] = f"NGP_{log2_table + 2} (one model, 2^{log2_table + 2})"
+    for name in ONE_MODEL_VARIANTS:
         out[(name + WALL_CLOCK_SUFFIX, "global")] = out[(name, "global")] + ", trained for the blocks' wall-clock"
     return out
 
@@ -79,8 +81,8 @@ def labels(log2_table: int = 19) -> Dict[Tuple[str, str], str]:
 def rows(results: Dict[str, Dict[str, Any]], notes: Optional[Dict[str, str]] = None, log2_table: int = 19) -> List[Dict[str, Any]]:
     """One row per (variant, fusion): label, time, metrics, parameters, memory."""
     labels_ = labels(log2_table)
-    if notes and "auto" in notes and "auto" not in results:  # automatic K = 1: the ngp19 run is it
-        labels_[("ngp19", "global")] += " = automatic K and capacity"
+    if notes and "auto" in notes and "auto" not in results:  # automatic K = 1: the ngp-t run is it
+        labels_[("ngp-t", "global")] += " = automatic K and capacity"
     out = []
     for name, result in results.items():
         if name == "global":
@@ -142,7 +144,7 @@ def equal_wall_clock(results: Dict[str, Dict[str, Any]], table: List[Dict[str, A
     times = sorted({round(r["parallel_train_s"], 1) for r in parallel})
     for r in sorted(parallel, key=lambda r: -r["psnr"]):
         lines.append(f"| {r['label']} | {r['fusion']} | {r['parallel_train_s']:.0f} | {r['psnr']:.2f} |")
-    for name in ("ngp19", "ngp21"):
+    for name in ONE_MODEL_VARIANTS:
         if name not in results:
             continue
         again = results.get(name + WALL_CLOCK_SUFFIX)  # trained once more for the blocks' wall-clock (--match-wall-clock)
@@ -308,11 +310,14 @@ def write_report(
 
 
 def rewrite_report(output_dir: Path) -> Dict[str, Any]:
-    """results.md and the plots again from results.json (e.g. after a change to the report)."""
+    """results.md and the plots again from results.json (e.g. after a change to the report). Variants
+    recorded under a former name (``ngp19``, ``ngp21`` and the names derived from them) are renamed."""
     path = output_dir / "results.json"
     if not path.is_file():
         raise SystemExit(f"scalar-nerf-benchmark: {path} not found (run the benchmark first)")
     report = json.loads(path.read_text())
+    for key in ("results", "notes"):
+        report[key] = {canonical_variant(name): value for name, value in report[key].items()}
     saved = report["config"]
     config = BenchmarkConfig(**{k: v for k, v in saved.items() if k in BenchmarkConfig.__dataclass_fields__})
     config.data = Path(saved["data"]) if saved.get("data") not in (None, "None") else None

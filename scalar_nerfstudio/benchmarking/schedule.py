@@ -8,6 +8,7 @@ from (time, steps and curve).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -16,11 +17,11 @@ from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
 
 from scalar_nerfstudio.benchmarking.variants import (
-    BenchmarkConfig, Variant, blocks_wall_clock_s, check_options, nearest_to_wall_clock, plan, use_quick_budgets, wall_clock_retry,
-    wall_clock_variants,
+    BenchmarkConfig, Variant, blocks_wall_clock_s, check_options, former_variant_name, nearest_to_wall_clock, plan, use_quick_budgets,
+    wall_clock_retry, wall_clock_variants,
 )
 
-__all__ = ["RUNNER_MODULE", "finished_run", "prepare", "run_variant", "run_variants", "variant_spec", "with_base_phase"]
+__all__ = ["RUNNER_MODULE", "finished_run", "finished_run_of_former_name", "prepare", "run_variant", "run_variants", "variant_spec", "with_base_phase"]
 
 #: The worker module each variant runs in (``python -m RUNNER_MODULE SPEC.json``).
 RUNNER_MODULE = "scalar_nerfstudio.benchmarking.runner"
@@ -29,7 +30,7 @@ REUSED_NOTE = "reused (--resume): an earlier run of the same spec, timed on the 
 
 
 def _quick_scene(output_dir: Path) -> Path:
-    from scalar_nerfstudio.data.synthetic_scene import write_scene
+    from scalar_nerfstudio.scenes.courtyard import write_scene
 
     scene = output_dir / "scene"
     if not (scene / "transforms.json").is_file():
@@ -73,10 +74,11 @@ def variant_spec(config: BenchmarkConfig, variant: Variant, runs: Path, results:
 
 def run_variant(config: BenchmarkConfig, variant: Variant, runs: Path, results: Dict[str, Dict[str, Any]], progress, task) -> Dict[str, Any]:
     """Train one variant in a subprocess (progress bar from its PROGRESS lines); its result dict. With
-    ``config.resume``, a finished run of the same spec in ``runs`` is read instead (:func:`finished_run`)."""
+    ``config.resume``, a finished run of the same spec in ``runs`` is read instead (:func:`finished_run`),
+    also one recorded under the variant's former name (:func:`finished_run_of_former_name`)."""
     spec = variant_spec(config, variant, runs, results)
     spec_path = runs / f"{variant.name}.spec.json"
-    result = finished_run(spec, spec_path) if config.resume else None
+    result = (finished_run(spec, spec_path) or finished_run_of_former_name(config, variant, runs, results)) if config.resume else None
     if result is not None:
         progress.console.print(f"{variant.name}: reusing its finished run ({spec['result']})")
         return _completed(variant, {**result, "reused": True}, results)
@@ -117,6 +119,18 @@ def finished_run(spec: Dict[str, Any], spec_path: Path) -> Optional[Dict[str, An
     if result.get("name") != spec["name"] or _checkpoint_of(result) is None:
         return None
     return result
+
+
+def finished_run_of_former_name(config: BenchmarkConfig, variant: Variant, runs: Path, results: Dict[str, Dict[str, Any]]) -> Optional[Dict[str, Any]]:
+    """The result of a finished run of ``variant`` that an earlier benchmark recorded in ``runs`` under the
+    variant's former name (``ngp19.spec.json`` for ``ngp-t``; :func:`.variants.former_variant_name`), with
+    the spec that name gives otherwise the same; renamed to ``variant.name``. None when there is none."""
+    former = former_variant_name(variant.name)
+    if former is None:
+        return None
+    as_before = dataclasses.replace(variant, name=former)
+    result = finished_run(variant_spec(config, as_before, runs, results), runs / f"{former}.spec.json")
+    return None if result is None else {**result, "name": variant.name}
 
 
 def _checkpoint_of(result: Dict[str, Any]) -> Optional[Path]:

@@ -2,8 +2,9 @@
 
 Variants (same scene, same machine, same run; each trains in its own process):
 
-* ``ngp19`` / ``ngp21``: one model (the paper's NGP_T / NGP_{T+2}), ``G + K B`` steps, table 2^T / 2^(T+2)
-  (``--log2-table T``, default 19; the variant names keep the paper's default T).
+* ``ngp-t`` / ``ngp-t2``: one model (the paper's NGP_T / NGP_{T+2}), ``G + K B`` steps, with the blocks'
+  table 2^T / a table 4x as large, 2^(T+2) (``--log2-table T``). Their former names ``ngp19`` /
+  ``ngp21`` (after the paper's default T = 19) are accepted everywhere (:data:`VARIANT_ALIASES`).
 * ``global``: the SCALAR-NeRF global phase (``G`` steps, table 2^T). The block variants below all
   start from this one trained global model (its time is counted in theirs), as in the paper.
 * ``scalar``: the paper's: K fresh blocks (``--pipeline.block-init fresh``) of ``B`` steps each,
@@ -40,13 +41,13 @@ compares at equal wall-clock with K workers: a block variant's time with its blo
 parallel (``G``'s time + its slowest block's) against the NGP curves at that time. The equal-steps
 variants do the same total work as NGP_T, so on K workers they finish early; ``auto-parallel`` is the
 budget where the K workers buy K times the block steps in NGP_T's wall-clock. When a one-model run
-(``ngp19``, ``ngp21``) ends more than :data:`WALL_CLOCK_TOLERANCE` before the longest such wall-clock,
+(``ngp-t``, ``ngp-t2``) ends more than :data:`WALL_CLOCK_TOLERANCE` before the longest such wall-clock,
 it is trained once more, from the start, for as many steps as fit in that wall-clock at its first
-run's pace (``ngp19-wall-clock``: see :func:`wall_clock_variants`): a one-model run's learning rate decays
+run's pace (``ngp-t-wall-clock``: see :func:`wall_clock_variants`): a one-model run's learning rate decays
 over its own steps, so its curve cannot be read past its end, and its end is not what it reaches in
 the blocks' time. A run's pace changes with its length and the machine's state, so when that run
 ends more than the tolerance away from the wall-clock, it is planned again from its own pace
-(``ngp19-wall-clock-2``, ...; :func:`wall_clock_retry`), up to ``--wall-clock-tries`` runs, and the
+(``ngp-t-wall-clock-2``, ...; :func:`wall_clock_retry`), up to ``--wall-clock-tries`` runs, and the
 run that ended nearest the wall-clock is the one read.
 """
 
@@ -58,18 +59,40 @@ from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
 
 __all__ = [
-    "VARIANTS", "WALL_CLOCK_SUFFIX", "WALL_CLOCK_TOLERANCE", "BenchmarkConfig", "Variant", "auto_k", "blocks_wall_clock_s", "check_options",
+    "ONE_MODEL_VARIANTS", "VARIANTS", "VARIANT_ALIASES", "WALL_CLOCK_SUFFIX", "canonical_variant", "former_variant_name", "WALL_CLOCK_TOLERANCE", "BenchmarkConfig", "Variant", "auto_k", "blocks_wall_clock_s", "check_options",
     "nearest_to_wall_clock", "parallel_block_steps", "plan", "use_quick_budgets", "wall_clock_retry", "wall_clock_variants",
 ]
 
+#: The one-model variants: NGP_T (one model, the blocks' table 2^T) and NGP_{T+2} (one model, a 4x table).
+ONE_MODEL_VARIANTS: Tuple[str, ...] = ("ngp-t", "ngp-t2")
 VARIANTS: Tuple[str, ...] = (
-    "ngp19", "ngp21", "scalar", "scalar-init-global", "scalar-fitted", "scalar-wo-sd", "scalar-wo-ft", "scalar-s1.0", "scalar-autocap", "auto", "auto-fitted", "auto-parallel", "auto-parallel-fitted", "nerfacto",
+    *ONE_MODEL_VARIANTS, "scalar", "scalar-init-global", "scalar-fitted", "scalar-wo-sd", "scalar-wo-ft", "scalar-s1.0", "scalar-autocap", "auto", "auto-fitted", "auto-parallel", "auto-parallel-fitted", "nerfacto",
 )
 
 #: The one-model runs trained once more for the blocks' wall-clock are named ``<variant>WALL_CLOCK_SUFFIX``.
 WALL_CLOCK_SUFFIX = "-wall-clock"
 #: A one-model run that ends this share of the blocks' wall-clock or less before it is read at its end.
 WALL_CLOCK_TOLERANCE = 0.03
+#: Former variant names, still accepted (``--variants``, and run folders of earlier benchmarks read by
+#: ``--resume``): former name -> name.
+VARIANT_ALIASES: Dict[str, str] = {"ngp19": "ngp-t", "ngp21": "ngp-t2"}
+
+
+def canonical_variant(name: str) -> str:
+    """``name`` with a former variant name (:data:`VARIANT_ALIASES`) replaced by its new one, the names
+    derived from it included (``ngp19-wall-clock-2`` -> ``ngp-t-wall-clock-2``); other names unchanged."""
+    for former, new in VARIANT_ALIASES.items():
+        if name == former or name.startswith(former + "-"):
+            return new + name[len(former):]
+    return name
+
+
+def former_variant_name(name: str) -> Optional[str]:
+    """The name ``name`` had before the rename (``ngp-t-wall-clock`` -> ``ngp19-wall-clock``), or None."""
+    for former, new in VARIANT_ALIASES.items():
+        if name == new or name.startswith(new + "-"):
+            return former + name[len(new):]
+    return None
 
 
 @dataclass
@@ -96,45 +119,38 @@ class BenchmarkConfig:
     rays_per_batch: int = 2048
     """Training rays per step (every variant)."""
     decoder_width: Optional[int] = None
-    """Width of the decoder's hidden layers in every SCALAR/NGP variant (``pipeline.model.field.hidden_dim``);
-    default: the field's default (64). 128 is the paper's decoder, which the town and castle-P30 pages of
-    2026-11-23 were measured with."""
+    """Units of each hidden decoder layer in every SCALAR/NGP variant (``pipeline.model.field.hidden_dim``).
+    None: the field's default. 128 is the paper's decoder."""
     eval_every: int = 200
     """Evaluate every this many steps (plus at the end of each variant)."""
     fusions: Optional[Tuple[str, ...]] = None
-    """Fusion modes every block variant is evaluated with at its end, in this order (the first is the one
-    its run renders with, and its curve's); default: each variant's own list (README, "Speed against error"). Each
-    mode is one more rendering of every held-out view, which on a large scene is much of a variant's
-    time (134 views at 256 x 192: 4-7 minutes on the 2-core machine); ``global-only`` reads the
-    global model alone."""
+    """Fusion modes every block variant is evaluated with at its end, in this order (the first is the one its
+    run renders with); default: each variant's own list. Each mode renders every held-out view once more."""
     match_wall_clock: bool = True
-    """Train a one-model run (NGP_T, NGP_{T+2}) that ended before the blocks' wall-clock on K workers once
-    more, for as many steps as fit in it (``<variant>-wall-clock``), so that equal wall-clock compares
-    the blocks with a run of their length, not with the shorter run's end. Off: the table reads the
-    shorter run's end and says so."""
+    """Train a one-model run (NGP_T, NGP_{T+2}) that ended before the blocks' wall-clock on K workers once more,
+    for that wall-clock (``<variant>-wall-clock``). Off: the table reads the shorter run's end and says so."""
     wall_clock_tries: int = 3
-    """At most this many runs of each one-model variant trained for the blocks' wall-clock: while one ends more than
-    3 % (WALL_CLOCK_TOLERANCE) before or after it, the next is planned from that run's own pace
-    (a run's steps get faster or slower with its length and the machine's state); the run that ended
-    nearest the wall-clock is read. Each run costs one model's training and one evaluation."""
+    """Most runs of each one-model variant for the blocks' wall-clock: while one ends more than 3 % away from
+    it, the next is planned from that run's pace; the run that ended nearest it is read."""
     resume: bool = False
-    """Reuse each variant's finished run in output_dir/runs whose spec there is the one this command writes
-    (same scene, options, seed and paths as written; the code and the scene's files are not compared) and
-    whose result and checkpoint are there: a stopped or extended benchmark trains only what is missing or
-    changed. The report notes each reused run (timed on the machine as it was then)."""
+    """Reuse each variant's finished run in output_dir/runs whose spec is the one this command writes (the code
+    and the scene's files are not compared): only what is missing or changed is trained."""
     seed: int = 42
-    """``machine.seed`` of every variant (ns-train's default): each run starts from the initial weights
-    and rays this seed gives, so the same command trains the same models; another seed repeats the
-    comparison with others (runs of one configuration differ by up to 0.7 dB between seeds on the
-    256 x 192 town at T = 10, docs/town.md)."""
+    """``machine.seed`` of every variant (ns-train's default). The same seed trains the same models,
+    another seed repeats the comparison from other initial weights and rays."""
     variants: Tuple[str, ...] = VARIANTS
-    """Which variants to run (the block variants add the global phase they start from)."""
+    """Which variants to run (the block variants add the global phase they start from). ``ngp-t``: one model
+    with the blocks' table 2^T; ``ngp-t2``: one model with a 4x table; former names ngp19 / ngp21 accepted."""
     quick: bool = False
     """Synthetic 24-image scene, tiny models, a few steps: checks the harness end to end in about a minute."""
     verbose: bool = False
     """Show the variants' training output."""
     from_results: bool = False
     """Train nothing: rewrite results.md and the plots from output_dir/results.json."""
+
+    def __post_init__(self) -> None:
+        # former variant names (ngp19, ngp21) become the new ones, so the run records only the new names
+        self.variants = tuple(canonical_variant(v) for v in self.variants)
 
 
 @dataclass
@@ -166,9 +182,10 @@ def check_options(config: BenchmarkConfig) -> None:
         raise SystemExit(f"scalar-nerf-benchmark: --wall-clock-tries {config.wall_clock_tries}: at least 1 run is needed")
     if config.decoder_width is not None and config.decoder_width < 1:
         raise SystemExit(f"scalar-nerf-benchmark: --decoder-width {config.decoder_width}: a decoder layer needs at least 1 unit")
-    unknown = [v for v in config.variants if v not in VARIANTS]
+    unknown = [v for v in config.variants if canonical_variant(v) not in VARIANTS]
     if unknown:
-        raise SystemExit(f"scalar-nerf-benchmark: unknown variant(s) {unknown}; choose from {list(VARIANTS)}")
+        raise SystemExit(f"scalar-nerf-benchmark: unknown variant(s) {unknown}; choose from {list(VARIANTS)} "
+                         f"(former names {list(VARIANT_ALIASES)} are accepted)")
     if config.fusions is not None:
         from scalar_nerfstudio.fusion import FusionModeError, parse_fusion_mode
 
@@ -218,23 +235,23 @@ def plan(config: BenchmarkConfig) -> Tuple[List[Variant], Dict[str, str]]:
     """The variants to run, in order, and notes (e.g. a variant that is the same as another)."""
     g, b, k = config.global_steps, config.block_steps, config.num_blocks
     total = g + k * b
-    log2_19, log2_21, shared = _tables(config)
-    common = {**shared, "pipeline.datamanager.train_num_rays_per_batch": config.rays_per_batch, "pipeline.model.field.log2_hashmap_size": log2_19}
-    fixed_tables = {"pipeline.block_log2_hashmap_size": log2_19, "pipeline.block_max_resolution": 256 if config.quick else 2048}
+    log2_t, log2_t2, shared = _tables(config)
+    common = {**shared, "pipeline.datamanager.train_num_rays_per_batch": config.rays_per_batch, "pipeline.model.field.log2_hashmap_size": log2_t}
+    fixed_tables = {"pipeline.block_log2_hashmap_size": log2_t, "pipeline.block_max_resolution": 256 if config.quick else 2048}
     single = {**common, "pipeline.num_blocks": 1, "pipeline.train_blocks": False, "pipeline.global_steps": total}
     blocks = {**common, "pipeline.num_blocks": k, "pipeline.global_steps": 0, "pipeline.block_steps": b}
     paper = {**blocks, **fixed_tables, "pipeline.block_init": "fresh"}  # the paper's blocks: empty tables of their own
     notes: Dict[str, str] = {}
-    wanted = list(config.variants)
     check_options(config)
+    wanted = [canonical_variant(v) for v in config.variants]
     out: List[Variant] = []
     if any(v.startswith(("scalar", "auto")) or v == "nerfacto" for v in wanted):
         out.append(Variant("global", "scalar-nerf", {**common, "pipeline.num_blocks": k, "pipeline.train_blocks": False, "pipeline.global_steps": g}))
     for name in wanted:
-        if name == "ngp19":
+        if name == "ngp-t":
             out.append(Variant(name, "scalar-nerf", single))
-        elif name == "ngp21":
-            out.append(Variant(name, "scalar-nerf", {**single, "pipeline.model.field.log2_hashmap_size": log2_21}))
+        elif name == "ngp-t2":
+            out.append(Variant(name, "scalar-nerf", {**single, "pipeline.model.field.log2_hashmap_size": log2_t2}))
         elif name == "scalar":
             out.append(Variant(name, "scalar-nerf", paper,
                                ["global", "surface", "idw", "nearest", "global-only"], base="global"))
@@ -256,11 +273,11 @@ def plan(config: BenchmarkConfig) -> Tuple[List[Variant], Dict[str, str]]:
             from scalar_nerfstudio.models.scene_model import ScalarSceneModelConfig
 
             default_fusion = ScalarSceneModelConfig.fusion
-            chosen = auto_k(config, log2_19)
+            chosen = auto_k(config, log2_t)
             if chosen == 1:
-                notes[name] = f"automatic K = 1 on this scene: one 2^{log2_19} model of {total} steps, the same configuration as ngp19"
-                if "ngp19" not in wanted and not any(v.name == "ngp19" for v in out):
-                    out.append(Variant("ngp19", "scalar-nerf", single))
+                notes[name] = f"automatic K = 1 on this scene: one 2^{log2_t} model of {total} steps, the same configuration as ngp-t"
+                if "ngp-t" not in wanted and not any(v.name == "ngp-t" for v in out):
+                    out.append(Variant("ngp-t", "scalar-nerf", single))
             else:
                 parallel = name.startswith("auto-parallel")
                 steps = parallel_block_steps(config) if parallel else k * b // chosen
@@ -312,7 +329,7 @@ def wall_clock_variants(
     reads a run as long as the blocks' (``--match-wall-clock``).
 
     The blocks' wall-clock is :func:`blocks_wall_clock_s`. A one-model variant of ``variants``
-    (``ngp19``, ``ngp21``) whose run in ``results`` ended more than :data:`WALL_CLOCK_TOLERANCE` of it
+    (``ngp-t``, ``ngp-t2``) whose run in ``results`` ended more than :data:`WALL_CLOCK_TOLERANCE` of it
     earlier gets a copy named ``<name>-wall-clock`` that trains ``ceil(wall-clock x steps / train_s)``
     steps, its first run's pace, from the start: its learning rate then decays over the longer run. It is
     evaluated at its end only. When it too ends away from the wall-clock, :func:`wall_clock_retry` plans
@@ -323,7 +340,7 @@ def wall_clock_variants(
     out: List[Tuple[Variant, str]] = []
     for variant in variants:
         first = results.get(variant.name)
-        if variant.name not in ("ngp19", "ngp21") or first is None or first["train_s"] >= seconds * (1.0 - WALL_CLOCK_TOLERANCE):
+        if variant.name not in ONE_MODEL_VARIANTS or first is None or first["train_s"] >= seconds * (1.0 - WALL_CLOCK_TOLERANCE):
             continue
         again = _planned_for(variant, variant.name + WALL_CLOCK_SUFFIX, first, seconds)
         note = (f"{variant.name} trained again from the start, first for {again.overrides['pipeline.global_steps']} steps: its first run of "

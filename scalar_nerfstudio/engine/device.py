@@ -16,6 +16,9 @@ from typing import Any, Literal
 import torch
 from nerfstudio.configs.base_config import MachineConfig
 
+# glibc malloc's settings live in engine/allocator.py; pipeline.py and the tests import these two from here.
+from scalar_nerfstudio.engine.allocator import GLIBC_MALLOC_ENV, keep_freed_memory  # noqa: F401
+
 DeviceType = Literal["auto", "cpu", "cuda", "mps"]
 
 
@@ -59,42 +62,3 @@ def limit_onednn_kernel_cache(capacity: int = 0) -> bool:
         return False
     os.environ[ONEDNN_CACHE_ENV] = str(int(capacity))
     return True
-
-
-#: glibc's malloc settings in the environment (``MALLOC_MMAP_MAX_`` and friends, or ``GLIBC_TUNABLES``):
-#: when any is set, the user tuned malloc and :func:`keep_freed_memory` leaves it alone.
-GLIBC_MALLOC_ENV = ("MALLOC_MMAP_MAX_", "MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_", "MALLOC_TOP_PAD_", "GLIBC_TUNABLES")
-_M_TRIM_THRESHOLD = -1
-_M_MMAP_MAX = -4
-#: Free memory at the top of the heap beyond which glibc still returns it to the system (2 GiB - 1).
-KEPT_FREE_BYTES = 2**31 - 1
-
-
-def keep_freed_memory() -> bool:
-    """Make glibc's malloc keep freed memory for the next tensors instead of unmapping it (Linux).
-
-    By default every tensor above a few MB gets fresh pages from ``mmap`` and gives them back to the
-    system when freed, so each step of CPU training (and each render) faults in a few hundred MB of
-    new pages: about a fifth of the run's time went to the kernel (measured on castle-P30: 28 s of
-    system time in a 100 s run; 6 s with this, and 17 % less wall-clock). With ``M_MMAP_MAX`` 0
-    large blocks come from the heap, and with a large ``M_TRIM_THRESHOLD`` the freed blocks stay
-    there for reuse. Resident memory then stays near its peak instead of dropping between steps.
-
-    Does nothing where the C library is not glibc, or where the user set any of
-    :data:`GLIBC_MALLOC_ENV`. Returns True when this call changed the settings.
-    """
-    import ctypes
-    import os
-    import sys
-
-    if not sys.platform.startswith("linux") or any(name in os.environ for name in GLIBC_MALLOC_ENV):
-        return False
-    try:
-        libc = ctypes.CDLL(None)
-        libc.gnu_get_libc_version  # glibc only: other C libraries' mallopt differs or is a stub
-        mallopt = libc.mallopt
-    except (OSError, AttributeError):
-        return False
-    mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
-    mallopt.restype = ctypes.c_int
-    return bool(mallopt(_M_MMAP_MAX, 0)) and bool(mallopt(_M_TRIM_THRESHOLD, KEPT_FREE_BYTES))

@@ -11,43 +11,21 @@ pages in again), so :class:`HeapRelease` does it only once resident memory has g
 :data:`RELEASE_AFTER_GROWTH_MIB` since the last release: memory stays bounded by that much plus one
 render, for a few per cent of the time (``benchmarks/bench_eval_memory.py``).
 
-Where glibc is not the C library (macOS, Windows, musl) :func:`release_freed_memory` does nothing.
+Where glibc is not the C library (macOS, Windows, musl) :func:`release_freed_memory` does nothing; it
+lives with glibc malloc's settings in :mod:`scalar_nerfstudio.engine.allocator`.
 """
 
 from __future__ import annotations
 
-import ctypes
-import functools
-import sys
 from dataclasses import dataclass
-from typing import Callable, Optional
+from typing import Optional
+
+from scalar_nerfstudio.engine.allocator import release_freed_memory
 
 __all__ = ["RELEASE_AFTER_GROWTH_MIB", "HeapRelease", "release_freed_memory", "resident_mib"]
 
 #: Growth of resident memory (MiB) since the last release after which :class:`HeapRelease` releases.
 RELEASE_AFTER_GROWTH_MIB = 2048.0
-
-
-@functools.lru_cache(maxsize=1)
-def _malloc_trim() -> Optional[Callable[[int], int]]:
-    """glibc's ``malloc_trim`` (None where the C library has none)."""
-    if not sys.platform.startswith("linux"):
-        return None
-    try:
-        trim = ctypes.CDLL("libc.so.6").malloc_trim
-    except (OSError, AttributeError):  # no glibc (musl), or a libc without malloc_trim
-        return None
-    trim.argtypes = [ctypes.c_size_t]
-    trim.restype = ctypes.c_int
-    return trim
-
-
-def release_freed_memory() -> bool:
-    """Return the pages of memory that has been freed to the operating system (glibc's
-    ``malloc_trim(0)``, a walk over malloc's arenas); True when some were returned, False when none
-    were or where glibc is absent. Live memory is not touched."""
-    trim = _malloc_trim()
-    return bool(trim(0)) if trim is not None else False
 
 
 def resident_mib() -> float:

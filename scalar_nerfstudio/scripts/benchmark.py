@@ -3,8 +3,9 @@
     scalar-nerf-benchmark --data ../shared/data/castle-P30 --downscale 4 --output-dir docs/benchmark/castle-P30
     scalar-nerf-benchmark --quick --output-dir /tmp/bench     # synthetic scene, a minute: checks the harness
 
-The variants (the paper's NGP_19 / NGP_21, SCALAR-NeRF and its ablations with several fusions,
-automatic K and capacity, nerfacto) are listed in :mod:`scalar_nerfstudio.benchmarking.variants`;
+The variants (one model with the blocks' table, ``ngp-t``, and with a 4x table, ``ngp-t2``: the
+paper's NGP_T / NGP_{T+2}; SCALAR-NeRF and its ablations with several fusions, automatic K and
+capacity; nerfacto) are listed in :mod:`scalar_nerfstudio.benchmarking.variants`;
 each trains in its own process, on the same scene and machine, in the same run.
 
 Equal budgets: every SCALAR/NGP variant trains ``G + K B`` steps of the same ray batch; nerfacto

@@ -32,11 +32,11 @@ def quiet_environment(base: Optional[dict] = None) -> dict:
 def write_demo_scene(scene: str, folder: Path, num_images: Optional[int]) -> None:
     """Write the named scene (courtyard: the small default; town: the large one) to ``folder``."""
     if scene == "courtyard":
-        from scalar_nerfstudio.data.synthetic_scene import write_scene
+        from scalar_nerfstudio.scenes.courtyard import write_scene
 
         write_scene(folder, **({} if num_images is None else {"num_images": num_images}))
     else:
-        from scalar_nerfstudio.data.town_scene import TownConfig, write_town
+        from scalar_nerfstudio.scenes.town import TownConfig, write_town
 
         config = TownConfig() if num_images is None else TownConfig(num_images=num_images)
         write_town(folder, config)

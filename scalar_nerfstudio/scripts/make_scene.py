@@ -1,17 +1,13 @@
 """``scalar-nerf-make-scene``: write one of the project's procedural scenes in nerfstudio format.
 
 Scenes:
-  town       a large town of streets and textured buildings, driven by a rig of street-level
-             cameras (transforms.json, images/, 16-bit depths/ in mm, scene.json); automatic
-             K > 1, so scalar-nerf splits it into blocks (docs/town.md: on 8 workers, blocks
-             of 2^12 beat one 2^12 model on the same schedule by +0.5 to +0.7 dB, and draw
-             with one of 2^14)
-             (--capture aerial: a drone's survey looking down, where a block's frames see
-             mostly its own part of the town: one table is further short there and blocks
-             gain most, +0.7 to +1.0 dB over it on 8 workers, docs/town.md)
+  town       a large town of streets and textured buildings (transforms.json, images/, 16-bit
+             depths/ in mm, scene.json), too large for one hash table: scalar-nerf splits it
+             into blocks (automatic K > 1). --capture: a rig of street-level cameras on a
+             vehicle (default), a walk, or a drone's aerial survey looking down.
   courtyard  the small courtyard of scalar-nerf-demo (transforms.json, images/)
 
-Train on it with every 8th frame of the drive held out:
+Train on it with every 8th frame held out:
   ns-train scalar-nerf --data DIR nerfstudio-data --eval-mode interval --eval-interval 8
 """
 
@@ -76,9 +72,8 @@ def build_parser() -> argparse.ArgumentParser:
     town.add_argument("--road-width", type=_positive_float, default=None, help="asphalt width in metres (default 8, or street width - 6 for narrower streets)")
     town.add_argument("--fov", type=_positive_float, default=None, help="horizontal field of view in degrees (default 45)")
     town.add_argument("--capture", choices=("rig", "walk", "aerial"), default=None,
-                      help="rig: a vehicle's cameras take a frame each at evenly spaced stops (Block-NeRF's capture, default); "
-                           "walk: one frame per position with a random heading (generator version 1's capture); "
-                           "aerial: a drone flies parallel lines over the town looking down (a block's frames see mostly its own part)")
+                      help="rig: a vehicle's cameras each take a frame at evenly spaced stops (default); walk: one frame per "
+                           "position, random heading; aerial: a drone flies parallel lines over the town, looking down")
     town.add_argument("--aerial-altitude", type=_positive_float, default=None, help="aerial only: flight altitude in metres (default 55)")
     town.add_argument("--rig-headings", type=float, nargs="+", default=None, metavar="DEG",
                       help="rig cameras' headings in degrees from the driving direction, positive to the left (default 30 -30)")
@@ -114,7 +109,7 @@ def _option_message(error: ValueError) -> str:
 
 
 def _town(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
-    from scalar_nerfstudio.data.town_scene import TownConfig, blocks_for_extent, build_town, town_camera_poses, write_town
+    from scalar_nerfstudio.scenes.town import TownConfig, blocks_for_extent, build_town, town_camera_poses, write_town
 
     options = {}
     for key, name in (("num_images", "num_images"), ("width", "width"), ("height", "height"), ("block_size", "block_size"),
@@ -180,7 +175,7 @@ def _automatic_blocks_line(config, poses) -> str:
 
 
 def _courtyard(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
-    from scalar_nerfstudio.data.synthetic_scene import write_scene
+    from scalar_nerfstudio.scenes.courtyard import write_scene
 
     town_only = [f"--{name.replace('_', '-')}" for name in ("blocks_x", "blocks_y", "extent", "block_size", "street_width", "road_width", "fov", "supersample", "capture", "rig_headings", "aerial_altitude")
                  if getattr(args, name) is not None]
