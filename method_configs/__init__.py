@@ -57,11 +57,10 @@ def global_trainer_config(method_name: str = "scalar-nerf", config_class: Type[S
         # decoder "block_decoder" (the paper's 5e-5). Each schedule spans the phase its group trains in.
         optimizers={
             # Hash tables at 1e-2, as Instant-NGP and nerfacto train them: the paper's 1e-3 serves 200k
-            # iterations, and at CPU run lengths (a few thousand steps) 1e-2 generalises better (docs/benchmarks.md).
+            # iterations, and at CPU run lengths (a few thousand steps) 1e-2 generalises better.
             "encoder": _adam(1e-2),
             # A block's table at 4e-2: blocks start from the global model's trained table and underfit
-            # their views within a block phase; on the town 8 copied blocks scored 19.06 / 19.15 / 19.19 /
-            # 19.21 dB at 1e-2 / 2e-2 / 4e-2 / 8e-2, and NGP_12 gained nothing from 4e-2 (docs/town.md).
+            # their views within a block phase at the global table's rate.
             "block_encoder": _adam(4e-2),
             "decoder": _adam(1e-3),
             "appearance": _adam(1e-3),

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Dict, List, Literal, Optional, Tuple, Type
 
 import torch
+import tyro
 from nerfstudio.data.datamanagers.base_datamanager import DataManager
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 from nerfstudio.pipelines.base_pipeline import Pipeline, VanillaPipeline, VanillaPipelineConfig
@@ -23,32 +24,15 @@ from torch.cuda.amp.grad_scaler import GradScaler
 from scalar_nerfstudio.blocks.capacity import BlockCapacity, LayoutScale, auto_num_blocks, layout_scale
 from scalar_nerfstudio.blocks.observation import block_observation
 from scalar_nerfstudio.blocks.plan import BlockPlan, PlanSettings, load_plan, plan_blocks
-from scalar_nerfstudio.blocks.split import BlockSplit, BlockSplitError, format_split_table, load_blocks_json
-from scalar_nerfstudio.data.datamanager import ScalarDataManagerConfig, camera_centres, camera_layout
-from scalar_nerfstudio.data.depth import missing_depth_files, scene_radius_from_depth
+from scalar_nerfstudio.blocks.split import BlockSplit, BlockSplitError, load_blocks_json
+from scalar_nerfstudio.data.datamanager import ScalarDataManagerConfig, camera_centres, camera_layout, training_image_names
+from scalar_nerfstudio.data.depth import scene_radius_logged
+from scalar_nerfstudio.engine.contract import Phase
 from scalar_nerfstudio.engine.device import keep_freed_memory
-from scalar_nerfstudio.runs import block_models_dir
-from scalar_nerfstudio.viewer import BlockOverlay, CoarseFirstRender, fusion_dropdown
 from scalar_nerfstudio.models.scene_model import BlockInit, DecoderMode, ScalarSceneModel, ScalarSceneModelConfig
-
-
-@dataclass(frozen=True)
-class Phase:
-    """A contiguous range of training steps that trains one model."""
-
-    block: Optional[int]
-    """None: the global model; k: block k's local model."""
-    start_step: int
-    num_steps: int
-
-    @property
-    def end_step(self) -> int:
-        """First step after the phase."""
-        return self.start_step + self.num_steps
-
-    @property
-    def name(self) -> str:
-        return "global" if self.block is None else f"block {self.block}"
+from scalar_nerfstudio.pipeline_text import format_eval_metrics, format_plan_report
+from scalar_nerfstudio.runs import RUN_SCHEMA_VERSION, block_models_dir
+from scalar_nerfstudio.viewer import BlockOverlay, CoarseFirstRender, fusion_dropdown
 
 
 LrSchedule = Literal["restart", "per-phase"]
@@ -64,74 +48,51 @@ class ScalarPipelineConfig(VanillaPipelineConfig):
     model: ScalarSceneModelConfig = field(default_factory=ScalarSceneModelConfig)
     """Model hyper-parameters, shared by the global and the local models, and the fusion."""
     num_blocks: Optional[int] = None
-    """K: blocks the training images are split into (KMeans on camera centres). None (default):
-    chosen from the camera layout, ceil(R^2 / T) for a layout R training pixels across and tables of
-    T rows (blocks/capacity.py); automatic K = 1 trains the global model only."""
+    """K, the number of blocks the training images are split into (KMeans on camera centres). None:
+    automatic, ceil(R^2 / T) for a layout R training pixels across and tables of T rows; 1: one model."""
     max_auto_blocks: int = 8
-    """Upper bound of the automatic K."""
+    """Upper bound of the automatic K (blocks)."""
     auto_min_images_per_block: int = 6
-    """The automatic K leaves at least this many training images per block."""
+    """The automatic K leaves at least this many training images per block (images)."""
     block_log2_hashmap_size: Optional[int] = None
-    """log2 table rows of every block model. None (default): per block, from its extent in pixels
-    and its images' pixel count, within block_log2_hashmap_bounds."""
+    """log2 table rows of every block model. None: per block, from its extent in pixels and its
+    images' pixel count, within block-log2-hashmap-bounds."""
     block_log2_hashmap_bounds: Tuple[int, int] = (14, 19)
-    """Bounds of the automatic block table size (log2 rows)."""
+    """Bounds LOW HIGH of the automatic block table size (log2 rows)."""
     block_max_resolution: Optional[int] = None
-    """Finest grid resolution of every block model. None (default): twice the block's extent in
-    pixels, within block_max_resolution_bounds."""
+    """Finest grid resolution of every block model (cells per axis). None: per block, twice its
+    extent in pixels, within block-max-resolution-bounds."""
     block_max_resolution_bounds: Tuple[int, int] = (64, 2048)
-    """Bounds of the automatic finest block resolution."""
+    """Bounds LOW HIGH of the automatic finest block resolution (cells per axis)."""
     aabb_scale: Tuple[float, float, float] = (1.2, 1.2, 1.2)
-    """s_AABB: per-axis scale of each block's camera AABB; images inside a scaled AABB join the
-    block, so blocks overlap when > 1 (1.2 is the paper's best)."""
+    """s_AABB: per-axis scale (x y z, >= 1) of each block's camera box; images inside a scaled box
+    join the block, so blocks overlap when > 1."""
     min_overlap_images: int = 1
-    """With aabb_scale > 1, a block whose scaled AABB takes in fewer images of other blocks is grown
-    until it does (sparse layouts such as castle-P30's ring; 0: Alg. 1 verbatim)."""
+    """With aabb-scale > 1, a block whose scaled box takes in fewer images of other blocks is grown
+    until it does (images; 0: never grown)."""
     split_seed: int = 0
     """KMeans seed of the split."""
     min_images_per_block: int = 2
-    """A split that leaves a block with fewer training images is refused (use fewer blocks)."""
+    """A split that leaves a block with fewer training images is refused (images)."""
     global_steps: int = 2000
     """Steps of the global phase."""
     block_steps: int = 1000
     """Steps of each block's phase."""
     decoder_mode: DecoderMode = "finetune"
-    """Local decoders: finetune a copy of the global decoder (its lr: --optimizers.block-decoder), keep
-    it frozen, or train a fresh one (independent, the paper's "w/o SD" ablation)."""
+    """Local decoders: finetune a copy of the global decoder (its rate: --optimizers.block-decoder),
+    keep it frozen, or train a fresh one (independent)."""
     block_init: BlockInit = "global"
-    """How a block's model starts: ``global`` (default): a copy of the trained global model (its frame,
-    table, decoder, occupancy grid and its images' appearance embeddings), fine-tuned on the block's
-    images, so a block starts as good as the global model (castle-P30: every fusion then beats the
-    global model alone, docs/fusion.md); ``fresh``: the paper's, an empty table of its own size over
-    the block's region (only the decoder is copied, see decoder-mode); ``fitted``: a table of its own
-    over the block's region like fresh, first fitted to the global model's encoding of the space the
-    block's cameras observe (--pipeline.model.block-fit-steps; only the hash grids run),
-    with its images' appearance embeddings copied. A run's config.yml from before this option loads
-    as fresh, as it was trained."""
+    """How a block's model starts: global: a copy of the trained global model; fresh: an empty table
+    of its own over the block's region; fitted: like fresh, first fitted to the global model's encoding."""
     lr_schedule: LrSchedule = "restart"
-    """How learning rates run across phases. ``restart`` (default): when blocks follow the global
-    phase, the global model warms up and then holds its learning rates (it is not the model that
-    renders in the end: the blocks continue from it), and every block warms up again and decays over
-    its own phase; a run of one model (K = 1) holds and then restarts as ``one_model_restart`` says. ``per-phase``:
-    every phase warms up and decays 10x over its own steps, the global phase too (the behaviour before
-    2026-11-24). On the town (docs/town.md) the held global model scores 18.10 dB after 600 steps
-    against 17.37 decayed, and its 8 x 125-step blocks 18.49 against 17.93. A config.yml from before
-    this option loads as ``per-phase``, as it was trained."""
+    """restart: the global model holds its learning rates after its warm-up when blocks follow, each
+    block warms up and decays over its phase; per-phase: every phase warms up and decays over its steps."""
     one_model_restart: float = 0.5
-    """A run of one model (automatic K = 1, or K = 1 without blocks; ``lr_schedule`` restart) follows
-    the schedule of a run with blocks: it warms up and holds its learning rates for this share of its
-    steps, then restarts them at the rates a block starts with (its table at --optimizers.block-encoder,
-    its decoder at --optimizers.block-decoder, its appearance at --optimizers.appearance) and decays
-    over the rest. 0: one warm-up and decay over the whole run (the behaviour before 2026-11-25; a
-    config.yml from before loads so). docs/town.md, "One model on the blocks' schedule"."""
+    """A run of one model (K = 1, lr-schedule restart) holds its rates for this share of its steps
+    (0 to 1), then restarts them at the block templates' rates and decays; 0: one decay over the run."""
     scene_radius_from_depth: bool = True
-    """A new run on a scene with depth images (``depth_file_path``), whose ``--pipeline.model.scene-radius``
-    is not given, is bounded by them: rays end where they leave the sphere around the centre of
-    twice the radius within which 99.9 % of the surface points of up to 64 training images lie
-    (data/depth.py); the radius is recorded in the run's config.yml. False: rays run to the far
-    plane, as before 2026-11-26 (docs/town.md, "The scene bounded by its depth images"). Scenes
-    without depth images stay unbounded: a bound broke castle-P30 (docs/town.md, "A bound on a real
-    capture")."""
+    """A new run on a scene with depth images, without --pipeline.model.scene-radius, ends its rays at
+    a sphere fitted to them (radius recorded in config.yml); False: rays run to the far plane."""
     train_blocks: bool = True
     """False: train the global phase only (blocks can then be trained with scalar-nerf-block)."""
     only_block: Optional[int] = None
@@ -140,26 +101,11 @@ class ScalarPipelineConfig(VanillaPipelineConfig):
     """Checkpoint of a trained global run to start from (set by scalar-nerf-block)."""
     blocks_json: Optional[Path] = None
     """Use this split (a run's blocks.json) instead of computing one (set by scalar-nerf-block)."""
-
     run_plan: Optional[Path] = None
-    """The run's own block plan (its blocks.json), recorded in config.yml when training starts: every
-    later load of the run (resume, ns-eval, ns-render, the viewer, ns-export) reads K, the split and
-    the block capacities back from it instead of deciding them again."""
-
-    def effective_block_init(self) -> BlockInit:
-        """:attr:`block_init`, or ``fresh`` for a config.yml written before the option existed (its
-        blocks were trained fresh; the YAML then has no such key and the class default would apply)."""
-        return self.__dict__.get("block_init", "fresh")
-
-    def effective_lr_schedule(self) -> LrSchedule:
-        """:attr:`lr_schedule`, or ``per-phase`` for a config.yml written before the option existed (its
-        global phase decayed, as it was trained)."""
-        return self.__dict__.get("lr_schedule", "per-phase")
-
-    def effective_one_model_restart(self) -> float:
-        """:attr:`one_model_restart`, or 0 for a config.yml written before the option existed (its one
-        model decayed over its whole run, as it was trained)."""
-        return float(self.__dict__.get("one_model_restart", 0.0))
+    """The run's own block plan (its blocks.json), recorded when training starts; every later load of
+    the run reads K, the split and the block capacities from it."""
+    scalar_schema_version: tyro.conf.Suppress[int] = RUN_SCHEMA_VERSION
+    """Version of this config's layout in config.yml (runs.py: an older run is upgraded on load)."""
 
     def plan_settings(self) -> PlanSettings:
         """The options a block plan is decided from (blocks/plan.py)."""
@@ -170,7 +116,7 @@ class ScalarPipelineConfig(VanillaPipelineConfig):
             min_overlap_images=self.min_overlap_images, only_block=self.only_block,
             block_log2_hashmap_size=self.block_log2_hashmap_size, block_log2_hashmap_bounds=tuple(self.block_log2_hashmap_bounds),
             block_max_resolution=self.block_max_resolution, block_max_resolution_bounds=tuple(self.block_max_resolution_bounds),
-            global_max_resolution=self.model.field.max_resolution if self.effective_block_init() == "global" else None,
+            global_max_resolution=self.model.field.max_resolution if self.block_init == "global" else None,
         )
 
     def automatic_num_blocks(self, scale: LayoutScale, num_images: int) -> int:
@@ -218,10 +164,9 @@ class ScalarPipeline(VanillaPipeline):
         self.plan: BlockPlan = self._block_plan(parsed)
         block_ids = self.plan.held_blocks
         self.phases: List[Phase] = config.phases(self.split.num_blocks, train_blocks=False if self.plan.single_model else None)
-        # A new run (one that has started reads its radius, or none, back from its config.yml; a
-        # config.yml from before 2026-11-26 has neither setting and stays unbounded).
-        if config.run_plan is None and getattr(config, "scene_radius_from_depth", False) and getattr(config.model, "scene_radius", None) is None:
-            config.model.scene_radius = _scene_radius_from_depth(parsed)
+        # A new run (one that has started reads its radius, or none, back from its config.yml).
+        if config.run_plan is None and config.scene_radius_from_depth and config.model.scene_radius is None:
+            config.model.scene_radius = scene_radius_logged(parsed)
         self._model = config.model.setup(
             scene_box=self.datamanager.train_dataset.scene_box,
             num_train_data=len(self.datamanager.train_dataset),
@@ -232,7 +177,7 @@ class ScalarPipeline(VanillaPipeline):
             block_ids=block_ids,
             block_capacities=self.plan.capacities,
             decoder_mode=config.decoder_mode,
-            block_init=config.effective_block_init(),
+            block_init=config.block_init,
             block_observation=self._block_observation(parsed),
         )
         self.model.to(device)
@@ -251,7 +196,7 @@ class ScalarPipeline(VanillaPipeline):
     # ---------------------------------------------------------------------------- set-up
     def _block_plan(self, parsed) -> BlockPlan:
         """The run's own plan when it has one (``run_plan``), else one decided from the parsed cameras."""
-        names = _image_names(parsed.image_filenames, self.config.datamanager.data)
+        names = training_image_names(parsed.image_filenames, self.config.datamanager.data)
         if self.config.run_plan is not None:
             plan = load_plan(Path(self.config.run_plan))
             if len(plan.image_names) != len(names):
@@ -413,23 +358,8 @@ class ScalarPipeline(VanillaPipeline):
 
     def plan_report(self) -> str:
         """The split, the automatic K, the block capacities and the phases, for the training log."""
-        lines = [format_split_table(self.split, self.image_names)]
-        pixels, log2_size = self.layout_scale.layout_pixels, self.config.model.field.log2_hashmap_size
-        if self.auto_num_blocks is not None:
-            lines.append(
-                f"automatic K = {self.auto_num_blocks}: the camera layout is {pixels:.0f} training pixels across at the "
-                f"viewing distance (R^2 / T = {pixels ** 2 / 2 ** log2_size:.2f} for T = 2^{log2_size})"
-                + ("; one model suffices, no block is trained" if self.plan.single_model else "")
-            )
-        for index, capacity in self.block_capacities.items():
-            start = {"global": " (starts as a copy of the global model)", "fitted": " (its table fitted to the global model first)"}.get(
-                self.config.effective_block_init(), "")
-            lines.append(f"block {index}: table 2^{capacity.log2_hashmap_size}, finest resolution {capacity.max_resolution}{start}")
-        lines.append("phases: " + ", ".join(f"{p.name}: steps {p.start_step}-{p.end_step - 1}" for p in self.phases if p.num_steps > 0))
-        hint = sequential_blocks_hint(sum(p.block is not None and p.num_steps > 0 for p in self.phases), torch.device(self.device).type)
-        if hint is not None:
-            lines.append(hint)
-        return "\n".join(lines)
+        return format_plan_report(self.plan, self.phases, self.config.model.field.log2_hashmap_size, self.config.block_init,
+                                  torch.device(self.device).type)
 
     def get_average_eval_image_metrics(
         self, step: Optional[int] = None, output_path: Optional[Path] = None, get_std: bool = False
@@ -443,8 +373,7 @@ class ScalarPipeline(VanillaPipeline):
         """For each optimiser parameter group: (template key in ``optimizers``, the phase it trains in).
 
         A block's groups use the ``block_encoder`` (its table) and ``appearance`` templates, and
-        ``block_decoder`` for a fine-tuned decoder copy (the trainer falls back to ``encoder`` for a
-        config.yml without ``block_encoder``: ``engine.trainer.TEMPLATE_FALLBACKS``)."""
+        ``block_decoder`` for a fine-tuned decoder copy."""
         phase_of_block = {phase.block: phase for phase in self.phases}
         templates = {}
         for group, _ in self.model.param_groups_by_model():
@@ -462,82 +391,23 @@ class ScalarPipeline(VanillaPipeline):
         when blocks follow it, in this run or in scalar-nerf-block runs (K > 1, or K = 1 with
         train_blocks); each block decays over its phase. One model (automatic K = 1, or K = 1 without
         blocks) does not hold to its end: see :attr:`global_restart_fraction`."""
-        return self.config.effective_lr_schedule() == "restart" and self._blocks_follow_global_model()
+        return self.config.lr_schedule == "restart" and self._blocks_follow_global_model()
 
     @property
     def global_restart_fraction(self) -> float:
         """Share of the global model's steps after which its rates restart at the block templates'
         (:attr:`ScalarPipelineConfig.one_model_restart`): only in a run of one model, with
         ``lr_schedule`` restart; 0 otherwise (no restart)."""
-        if self.config.effective_lr_schedule() != "restart" or self._blocks_follow_global_model():
+        if self.config.lr_schedule != "restart" or self._blocks_follow_global_model():
             return 0.0
-        return self.config.effective_one_model_restart()
+        return float(self.config.one_model_restart)
 
     def _blocks_follow_global_model(self) -> bool:
         """Whether blocks train from the global model, in this run or in scalar-nerf-block runs."""
         return not self.plan.single_model and (self.split.num_blocks > 1 or self.config.train_blocks)
 
 
-def _scene_radius_from_depth(parsed) -> Optional[float]:
-    """The scene's radius from its depth images (None: it has none, or they are incomplete), with one
-    line saying which."""
-    missing = missing_depth_files(parsed.metadata)
-    if missing is None:
-        return None
-    if missing:
-        CONSOLE.print(f"[yellow]scene not bounded by depth: {len(missing)} of its depth files are missing (first: {missing[0]})")
-        return None
-    radius = scene_radius_from_depth(parsed)
-    if radius is None:
-        CONSOLE.print("[yellow]scene not bounded by depth: no pixel of its depth images has a known depth")
-    else:
-        CONSOLE.print(f"scene bounded by its depth images: rays end {radius:.3g} units from the centre "
-                      "(--pipeline.model.scene-radius; --pipeline.scene-radius-from-depth False: unbounded)")
-    return radius
-
-
 def parsed_layout_scale(parsed) -> LayoutScale:
     """:class:`LayoutScale` of the parsed training cameras."""
     cameras = camera_layout(parsed)
     return layout_scale(cameras.centres, cameras.directions, cameras.focal_px)
-
-
-def _image_names(filenames: List[Path], data: Optional[Path]) -> List[str]:
-    """Training image names as stored in blocks.json: paths relative to the scene folder when possible."""
-    root = None
-    if data is not None:
-        root = Path(data).resolve()
-        root = root.parent if root.suffix == ".json" else root
-    names = []
-    for path in filenames:
-        resolved = Path(path).resolve()
-        names.append(str(resolved.relative_to(root)) if root is not None and resolved.is_relative_to(root) else resolved.name)
-    return names
-
-
-def sequential_blocks_hint(num_blocks_trained: int, device_type: str) -> Optional[str]:
-    """The training log's hint, on a GPU, that this process trains its blocks one after another while
-    ``scalar-nerf-train-blocks`` trains them at once (one block leaves a GPU mostly idle); None
-    when it does not apply (the CPU, or at most one block)."""
-    if device_type != "cuda" or num_blocks_trained < 2:
-        return None
-    return (
-        f"the {num_blocks_trained} blocks train one after another in this process; on a GPU they train faster at once: "
-        "--pipeline.train-blocks False, then scalar-nerf-train-blocks RUN (8 blocks on one H200: 4.2x faster)"
-    )
-
-
-def format_eval_metrics(metrics: Dict[str, float], fusion: str) -> str:
-    """One line: the fusion, PSNR / SSIM / LPIPS (with std when present), the depth metrics (scenes with
-    true depth) and time per image."""
-    parts = []
-    for key, label, digits in (("psnr", "PSNR", 2), ("ssim", "SSIM", 3), ("lpips", "LPIPS", 3)):
-        if key in metrics:
-            std = f" ± {metrics[key + '_std']:.{digits}f}" if f"{key}_std" in metrics else ""
-            parts.append(f"{label} {metrics[key]:.{digits}f}{std}")
-    if "lpips" not in metrics:
-        parts.append("LPIPS skipped")
-    if "depth_delta1" in metrics:  # a scene with true depth (the town)
-        parts.append(f"depth within 25 % {metrics['depth_delta1']:.1%}, median depth error {metrics['depth_median_rel_error']:.1%}")
-    timing = f", {1.0 / metrics['fps']:.2f} s/image" if metrics.get("fps") else ""
-    return f"eval ({fusion} fusion): " + ", ".join(parts) + timing

@@ -1,5 +1,5 @@
-"""Run folders: the one module that knows their layout (standard library and PyYAML; torch only to
-save, load and assemble checkpoints).
+"""Run folders: the one module that knows their layout and upgrades older runs (standard library and
+PyYAML only; it knows nothing of the model: assembling block runs is ``assembly.py``).
 
 A run folder (``OUTPUT/EXPERIMENT/METHOD/TIMESTAMP``) holds
 
@@ -11,24 +11,23 @@ A run folder (``OUTPUT/EXPERIMENT/METHOD/TIMESTAMP``) holds
 * ``block_models/block-NNNN.ckpt``: one file per finished block, written atomically when its phase
   ends (so memory and checkpoints do not grow with the number of blocks);
 * ``dataparser_transforms.json``, ``model_report.json`` and, for an assembled run, ``assembled_from.json``.
+
+config.yml and blocks.json carry the run's schema version (:data:`RUN_SCHEMA_VERSION`): a run
+written by an older version is upgraded when it is loaded (:func:`upgrade_run_config`,
+:func:`upgrade_blocks_json`), one written by a newer version is refused (:class:`RunSchemaError`).
 """
 
 from __future__ import annotations
 
-import json
+import copy
 import os
 import re
-import shutil
-from datetime import datetime
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Dict, List, Optional, Tuple
+from typing import Any, Dict, Mapping, Optional
 
 import yaml
 
 from scalar_nerfstudio.atomic_io import atomic_write_text
-
-if TYPE_CHECKING:
-    import torch
 
 CONFIG_NAME = "config.yml"
 BLOCKS_JSON_NAME = "blocks.json"
@@ -38,7 +37,6 @@ BLOCK_MODELS_DIR = "block_models"
 CHECKPOINT_PATTERN = re.compile(r"^step-(\d{9})\.ckpt$")
 MODEL_DIR_NAME = "nerfstudio_models"
 """nerfstudio's default ``relative_model_dir`` (the benchmark's runs keep it)."""
-PARTIAL_SUFFIX = ".ckpt.partial"
 
 
 class RunError(ValueError):
@@ -58,23 +56,6 @@ def latest_checkpoint_step(checkpoint_dir: Path) -> Optional[int]:
     return max(steps) if steps else None
 
 
-def atomic_torch_save(state: Dict[str, Any], path: Path) -> None:
-    """Write ``state`` to ``path`` so that ``path`` is either absent or complete, never half-written.
-
-    The bytes go to a hidden file in ``path``'s parent's parent (outside the checkpoint folder, whose
-    every file nerfstudio's loaders parse as ``step-N.ckpt``), are fsynced, then renamed into place.
-    """
-    import torch  # here, not at import: light processes (Ray workers) read run folders without torch
-
-    path = Path(path)
-    staging = path.parent.parent / f".{path.stem}{PARTIAL_SUFFIX}"
-    with open(staging, "wb") as handle:
-        torch.save(state, handle)
-        handle.flush()
-        os.fsync(handle.fileno())
-    os.replace(staging, path)
-
-
 def run_config_path(run: Path) -> Path:
     """``config.yml`` of a run given as the file itself or its folder."""
     path = Path(run)
@@ -82,11 +63,20 @@ def run_config_path(run: Path) -> Path:
 
 
 def load_run_config(run: Path) -> Any:
-    """The trainer config of a run (folder or config.yml)."""
+    """The trainer config of a run (folder or config.yml), upgraded to :data:`RUN_SCHEMA_VERSION`
+    (``ScalarTrainerConfig`` calls :func:`upgrade_run_config` as YAML builds it).
+
+    Raises:
+        RunError: there is no config.yml.
+        RunSchemaError: the run was written by a newer version (the message names the file).
+    """
     path = run_config_path(run)
     if not path.is_file():
         raise RunError(f"{run}: no {CONFIG_NAME} there (not a nerfstudio run folder)")
-    return yaml.load(path.read_text(encoding="utf-8"), Loader=yaml.Loader)
+    try:
+        return yaml.load(path.read_text(encoding="utf-8"), Loader=yaml.Loader)
+    except RunSchemaError as error:
+        raise RunSchemaError(f"{path}: {error}") from None
 
 
 def save_run_config(config: Any, run_dir: Path) -> Path:
@@ -131,130 +121,79 @@ def report_path(run_dir: Path) -> Path:
     return Path(run_dir) / REPORT_NAME
 
 
-def _load_checkpoint(path: Path) -> Dict[str, Any]:
-    import torch
+# ------------------------------------------------------------------ schema versions and migration
+RUN_SCHEMA_VERSION = 2
+"""Version of the run files this code writes: ``pipeline.scalar_schema_version`` in config.yml and
+``version`` in blocks.json. Version 1: every run written before the versions were recorded."""
+SCHEMA_FIELD = "scalar_schema_version"
+"""The pipeline config's field that holds the version of config.yml."""
 
-    return torch.load(path, map_location="cpu", weights_only=True)
-
-
-# ------------------------------------------------------------------ assembling block runs into one run
-class AssembleError(RuntimeError):
-    """The runs cannot be combined (named in the message)."""
-
-
-def load_run(run: Path) -> Tuple[Path, object, Path]:
-    """(run folder, its config, its newest checkpoint) for a run folder or its config.yml."""
-    config_path = run_config_path(run)
-    try:
-        config = load_run_config(config_path)
-        return config_path.parent, config, latest_checkpoint(config_path.parent, config)
-    except RunError as error:
-        raise AssembleError(str(error)) from None
-
-
-def _split_of(run_dir: Path) -> Tuple[List[str], List[Tuple[int, ...]]]:
-    """(training image names, each block's image indices) of a run's blocks.json."""
-    from scalar_nerfstudio.blocks.split import BlockSplitError, load_blocks_json  # numpy and sklearn: only here
-
-    try:
-        split, names = load_blocks_json(blocks_json_path(run_dir))
-    except BlockSplitError as error:
-        raise AssembleError(f"{run_dir}: {error}") from None
-    return names, [block.image_indices for block in split.blocks]
+#: What a version-1 config.yml may lack, with the value it was trained with: pipeline options ...
+_V1_PIPELINE = {
+    "block_init": "fresh",  # blocks started from an empty table of their own
+    "lr_schedule": "per-phase",  # every phase, the global one too, warmed up and decayed
+    "one_model_restart": 0.0,  # one model decayed over its whole run, without a restart
+    "scene_radius_from_depth": False,  # rays ran to the far plane
+}
+#: ... model options ...
+_V1_MODEL = {"scene_radius": None}  # unbounded rays
+#: ... and optimiser templates, with the template that trained those groups then.
+_V1_OPTIMIZERS = {"block_encoder": "encoder"}  # block tables at the global table's rate
 
 
-def merge_block_states(global_state: Dict[str, torch.Tensor], block_states: Dict[int, Dict[str, torch.Tensor]]) -> Dict[str, torch.Tensor]:
-    """The global run's pipeline state with block k's weights taken from ``block_states[k]``.
+class RunSchemaError(RunError):
+    """A run file was written by a newer version of scalar-nerfstudio than this one (or its version is not a number)."""
 
-    Every block given is marked as started (it will be fused); a block not given keeps what the
-    global run has for it (trained there, or not started and so not fused). A tensor the global run
-    holds empty (a block kept in its file, or never started) takes the block run's shape.
+
+def _check_version(version: Any, what: str) -> int:
+    if isinstance(version, bool) or not isinstance(version, int) or version < 1:
+        raise RunSchemaError(f"{what} has schema version {version!r}, not a whole number >= 1")
+    if version > RUN_SCHEMA_VERSION:
+        raise RunSchemaError(f"{what} was written by a newer scalar-nerfstudio (schema version {version}; this one reads "
+                             f"versions up to {RUN_SCHEMA_VERSION}): load it with that version")
+    return version
+
+
+def upgrade_run_config(state: Dict[str, Any]) -> Dict[str, Any]:
+    """A run's trainer config, as YAML (or pickle) hands it over (the attributes of a
+    ``ScalarTrainerConfig``, its pipeline already built), brought to :data:`RUN_SCHEMA_VERSION`.
+
+    Version 1 (no ``scalar_schema_version``): every option it lacks is set to the value it was
+    trained with (``_V1_*``; options it has are kept), so it loads and resumes as it was trained.
+    A config whose pipeline is not scalar-nerf's is returned unchanged.
+
+    Raises:
+        RunSchemaError: the config was written by a newer version.
     """
-    from scalar_nerfstudio.models.scene_model import ScalarSceneModel
-
-    merged = dict(global_state)
-    started_key = ScalarSceneModel.started_key()
-    started = merged[started_key].clone()
-    for block, state in block_states.items():
-        weights = {k: state[k] for k in ScalarSceneModel.block_keys(state, block)}
-        if not weights:
-            raise AssembleError(f"block {block}: the block run's checkpoint holds no weights for it")
-        missing = set(ScalarSceneModel.block_keys(merged, block)) - set(weights)
-        if missing:
-            raise AssembleError(f"block {block}: the block run lacks {len(missing)} tensors, e.g. {sorted(missing)[0]}")
-        for key, value in weights.items():
-            if key in merged and merged[key].numel() > 0 and merged[key].shape != value.shape:
-                raise AssembleError(f"block {block}: {key} has shape {list(value.shape)}, the global run {list(merged[key].shape)}")
-            merged[key] = value
-        started[block] = True
-    merged[started_key] = started
-    return merged
-
-
-def _move_blocks_to_files(merged: Dict[str, torch.Tensor], global_dir: Path, run_dir: Path) -> None:
-    """Every started block of the assembled run goes to its own file in ``run_dir``'s block_models/
-    (its tensors in ``merged`` become empty), so loading the run holds a bounded number of blocks in
-    memory: weights present in ``merged`` are written out, and the global run's block files are copied."""
-    from scalar_nerfstudio.models.block_memory import save_block_file
-    from scalar_nerfstudio.models.scene_model import ScalarSceneModel
-
-    started = merged[ScalarSceneModel.started_key()].tolist()
-    for block, is_started in enumerate(started):
-        if not is_started:
-            continue
-        keys = ScalarSceneModel.block_keys(merged, block)
-        target = block_model_path(block_models_dir(run_dir), block)
-        if keys and any(merged[k].numel() > 0 for k in keys):
-            head = f"{ScalarSceneModel.PIPELINE_KEY_PREFIX}blocks.{block}."
-            save_block_file(target, block, {k[len(head):]: merged[k] for k in keys})
-            for key in keys:
-                merged[key] = merged[key].new_empty(0)
-        else:
-            source = block_model_path(block_models_dir(global_dir), block)
-            if not source.is_file():
-                raise AssembleError(f"block {block}: {global_dir} says it trained, but {source} is missing")
-            target.parent.mkdir(parents=True, exist_ok=True)
-            shutil.copy2(source, target)
+    pipeline = state.get("pipeline")
+    if not hasattr(type(pipeline), SCHEMA_FIELD):
+        return state
+    fields = vars(pipeline)
+    version = _check_version(fields.get(SCHEMA_FIELD, 1), "config.yml")
+    if version < 2:
+        for name, value in _V1_PIPELINE.items():
+            fields.setdefault(name, value)
+        model = fields.get("model")
+        if model is not None:
+            for name, value in _V1_MODEL.items():
+                vars(model).setdefault(name, value)
+        optimizers = state.get("optimizers")
+        if isinstance(optimizers, dict):
+            for name, template in _V1_OPTIMIZERS.items():
+                if name not in optimizers and template in optimizers:
+                    optimizers[name] = copy.deepcopy(optimizers[template])
+    fields[SCHEMA_FIELD] = RUN_SCHEMA_VERSION
+    return state
 
 
-def assemble(global_run: Path, block_runs: List[Path], output_dir: Optional[Path] = None) -> Path:
-    """Write the combined run; returns its folder."""
-    global_dir, global_config, global_checkpoint = load_run(global_run)
-    split = _split_of(global_dir)
-    block_states: Dict[int, Dict[str, torch.Tensor]] = {}
-    sources: Dict[int, Path] = {}
-    for block_run in block_runs:
-        run_dir, config, checkpoint = load_run(block_run)
-        block = getattr(config.pipeline, "only_block", None)
-        if block is None:
-            raise AssembleError(f"{run_dir} is not a scalar-nerf-block run")
-        if _split_of(run_dir) != split:
-            raise AssembleError(f"{run_dir} was split differently from {global_dir} (its blocks.json differs)")
-        if block in sources:
-            raise AssembleError(f"block {block} is given twice: {sources[block]} and {run_dir}")
-        block_states[block] = _load_checkpoint(checkpoint)["pipeline"]
-        sources[block] = run_dir
-    state = _load_checkpoint(global_checkpoint)
-    merged = merge_block_states(state["pipeline"], block_states)
+def upgrade_blocks_json(content: Mapping[str, Any], path: Path) -> Dict[str, Any]:
+    """A blocks.json's ``content`` brought to :data:`RUN_SCHEMA_VERSION` (version 1 has the same
+    layout: the split, and the plan when a run wrote it, so only its version changes).
 
-    timestamp = datetime.now().strftime("%Y-%m-%d_%H%M%S") + "-assembled"
-    root = Path(output_dir) if output_dir is not None else Path(global_config.output_dir)
-    run_dir = root / global_config.experiment_name / global_config.method_name / timestamp
-    global_config.output_dir = root
-    global_config.timestamp = timestamp
-    global_config.load_dir = None
-    model_dir = run_dir / global_config.relative_model_dir
-    model_dir.mkdir(parents=True)
-    for name in (BLOCKS_JSON_NAME, "dataparser_transforms.json"):
-        if (global_dir / name).is_file():
-            shutil.copy2(global_dir / name, run_dir / name)
-    if getattr(global_config.pipeline, "run_plan", None) is not None:
-        global_config.pipeline.run_plan = blocks_json_path(run_dir).resolve()  # the copy: the new run is self-contained
-    _move_blocks_to_files(merged, global_dir, run_dir)
-    atomic_torch_save({"step": state["step"], "pipeline": merged}, model_dir / checkpoint_name(state["step"]))
-    save_run_config(global_config, run_dir)
-    atomic_write_text(
-        run_dir / ASSEMBLED_FROM_NAME,
-        json.dumps({"global_run": str(global_dir), "blocks": {str(k): str(v) for k, v in sorted(sources.items())}}, indent=2),
-    )
-    return run_dir
+    Raises:
+        RunSchemaError: the file was written by a newer version (the message names ``path``).
+    """
+    upgraded = dict(content)
+    _check_version(upgraded.get("version", 1), str(path))
+    upgraded["version"] = RUN_SCHEMA_VERSION
+    return upgraded

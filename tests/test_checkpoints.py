@@ -16,7 +16,8 @@ import torch
 import yaml
 
 from conftest import CASTLE, TRAIN_STEPS, castle_args, free_port, ns_train_command, requires_castle, run_dirs, sigkill_after_checkpoint
-from scalar_nerfstudio.runs import PARTIAL_SUFFIX, atomic_torch_save, latest_checkpoint_step
+from scalar_nerfstudio.atomic_io import PARTIAL_SUFFIX, atomic_torch_save
+from scalar_nerfstudio.runs import latest_checkpoint_step
 
 
 def test_failed_write_keeps_previous_checkpoint(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -41,7 +42,7 @@ def test_process_killed_while_writing_leaves_no_checkpoint(tmp_path: Path) -> No
     writer = subprocess.Popen([sys.executable, "-c", textwrap.dedent(f"""
         import torch
         from pathlib import Path
-        from scalar_nerfstudio.runs import atomic_torch_save
+        from scalar_nerfstudio.atomic_io import atomic_torch_save
         atomic_torch_save({{"big": torch.ones(400_000_000, dtype=torch.uint8)}}, Path({str(checkpoint)!r}))
         """)])
     partial = checkpoint.parent.parent / f".{checkpoint.stem}{PARTIAL_SUFFIX}"

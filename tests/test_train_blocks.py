@@ -407,7 +407,7 @@ def test_local_executor_reports_failures_then_trains_and_fuses(global_run: Path,
 
 def test_a_gpu_run_that_trains_its_blocks_in_turn_points_to_train_blocks() -> None:
     """On a GPU, ns-train's log says that scalar-nerf-train-blocks trains the blocks at once."""
-    from scalar_nerfstudio.pipeline import sequential_blocks_hint
+    from scalar_nerfstudio.pipeline_text import sequential_blocks_hint
 
     hint = sequential_blocks_hint(8, "cuda")
     assert hint is not None and "8 blocks train one after another" in hint and "scalar-nerf-train-blocks" in hint

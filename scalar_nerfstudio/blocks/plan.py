@@ -159,15 +159,16 @@ def load_plan(path: Path) -> BlockPlan:
     """Read the plan :func:`save_plan` wrote.
 
     Raises:
-        BlockSplitError: the file is missing or malformed, or it holds a split but no plan (a
-            blocks.json written before plans were saved).
+        BlockSplitError: the file is missing, malformed or newer than this code, or it holds a split
+            but no plan (a split file, or a run's from before plans were saved: such a run's
+            config.yml records no ``run_plan``, and its plan is decided again from its cameras).
     """
     path = Path(path)
     split, names = load_blocks_json(path)
     content: Dict[str, Any] = json.loads(path.read_text(encoding="utf-8"))
     saved = content.get("plan")
     if not isinstance(saved, dict):
-        raise BlockSplitError(f"{path} holds a block split but no plan (written by an older version)")
+        raise BlockSplitError(f"{path} holds a block split but no plan (a split file, or a run's from before plans were saved)")
     try:
         held = tuple(int(k) for k in saved["held_blocks"])
         capacities = {int(k): BlockCapacity(**v) for k, v in saved["capacities"].items()}

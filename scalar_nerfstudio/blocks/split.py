@@ -63,6 +63,7 @@ import numpy as np
 from sklearn.cluster import KMeans
 
 from scalar_nerfstudio.atomic_io import atomic_write_text
+from scalar_nerfstudio.runs import RUN_SCHEMA_VERSION, RunSchemaError, upgrade_blocks_json
 
 __all__ = [
     "KMEANS_N_INIT",
@@ -82,9 +83,9 @@ __all__ = [
 THIN_AXIS_FRACTION: float = 0.05
 #: Number of KMeans restarts (fixed, so the split is reproducible for a given seed).
 KMEANS_N_INIT: int = 10
-#: Identifier and version written to blocks.json.
+#: Identifier and version written to blocks.json (the run's schema version, ``runs.py``).
 BLOCKS_JSON_FORMAT: str = "scalar-nerf-blocks"
-BLOCKS_JSON_VERSION: int = 1
+BLOCKS_JSON_VERSION: int = RUN_SCHEMA_VERSION
 
 Vec3 = tuple[float, float, float]
 
@@ -396,7 +397,8 @@ def load_blocks_json(path: Path) -> tuple[BlockSplit, list[str]]:
         ``(split, image_names)`` where ``image_names`` lists all training images.
 
     Raises:
-        BlockSplitError: If the file is missing, not JSON, or not a valid blocks file.
+        BlockSplitError: If the file is missing, not JSON, not a valid blocks file, or written by a
+            newer version (a file of an older version is upgraded, ``runs.upgrade_blocks_json``).
     """
     path = Path(path)
     try:
@@ -406,11 +408,14 @@ def load_blocks_json(path: Path) -> tuple[BlockSplit, list[str]]:
     try:
         if data.get("format") != BLOCKS_JSON_FORMAT:
             raise BlockSplitError(f"{path} is not a {BLOCKS_JSON_FORMAT} file (format={data.get('format')!r})")
+        data = upgrade_blocks_json(data, path)
         names = [str(n) for n in data["image_names"]]
         blocks = tuple(_block_from_json(entry, len(names)) for entry in data["blocks"])
         if int(data["num_blocks"]) != len(blocks):
             raise BlockSplitError(f"{path}: num_blocks={data['num_blocks']} but {len(blocks)} blocks are listed")
         split = BlockSplit(blocks=blocks, aabb_scale=_vec3(data["aabb_scale"], "aabb_scale"), seed=int(data["seed"]))
+    except RunSchemaError as exc:
+        raise BlockSplitError(str(exc)) from None
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
         if isinstance(exc, BlockSplitError):
             raise

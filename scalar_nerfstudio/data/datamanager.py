@@ -61,6 +61,20 @@ def subset_dataparser_outputs(outputs: DataparserOutputs, image_indices: Tuple[i
     )
 
 
+def training_image_names(filenames: List[Path], data: Optional[Path]) -> List[str]:
+    """Training image names as stored in blocks.json: paths relative to the scene folder ``data`` (a
+    folder or its transforms.json) when possible, else file names."""
+    root = None
+    if data is not None:
+        root = Path(data).resolve()
+        root = root.parent if root.suffix == ".json" else root
+    names = []
+    for path in filenames:
+        resolved = Path(path).resolve()
+        names.append(str(resolved.relative_to(root)) if root is not None and resolved.is_relative_to(root) else resolved.name)
+    return names
+
+
 def camera_centres(outputs: DataparserOutputs) -> Tensor:
     """[N, 3] camera centres of the parsed training images, in the dataparser's (normalised) frame."""
     return outputs.cameras.camera_to_worlds[:, :3, 3].clone()
@@ -142,13 +156,11 @@ class ScalarDataManagerConfig(VanillaDataManagerConfig):
     image_subset: Optional[Tuple[int, ...]] = None
     """Indices of the training images to load (None: all). Set by the pipeline for a block."""
     alpha_background: Tuple[float, float, float] = (1.0, 1.0, 1.0)
-    """RGB in [0, 1] that transparent pixels (RGBA, grayscale+alpha, transparent palette images) are
-    composited over, in memory (the scene folder is not changed)."""
+    """RGB colour (each in [0, 1]) that transparent pixels are composited over, in memory (the scene
+    folder is not changed)."""
     image_cache_mib: Optional[float] = None
-    """Memory for the decoded images (float32, as nerfstudio keeps them), training and eval together.
-    None (default): a quarter of the memory available when training starts. When the images do not
-    fit, a random subset that fits is cached and replaced every ``image_resample_every`` steps, so
-    every image is sampled over time (nerfstudio's train_num_images_to_sample_from mechanism)."""
+    """Memory for the decoded training and eval images (MiB); None: a quarter of the memory available at
+    start. Images that do not fit are cached as a random subset, replaced every image-resample-every steps."""
     image_resample_every: int = 250
     """Steps between fresh random image subsets, when not every image fits ``image_cache_mib``."""
 
@@ -250,6 +262,5 @@ class ScalarDataManager(VanillaDataManager[ScalarInputDataset]):
             self.config = config
 
     def _with_background(self, dataset: ScalarInputDataset) -> ScalarInputDataset:
-        background = getattr(self.config, "alpha_background", ScalarInputDataset.alpha_background)
-        dataset.alpha_background = tuple(float(c) for c in background)  # type: ignore[assignment]
+        dataset.alpha_background = tuple(float(c) for c in self.config.alpha_background)  # type: ignore[assignment]
         return dataset

@@ -1,8 +1,8 @@
 """A scene's depth images (``depth_file_path`` in transforms.json): each pixel's distance along its
 ray, and how far the scene they show extends.
 
-Evaluation scores rendered depth against :func:`ray_depth_image`; the pipeline bounds the scene by
-:func:`scene_radius_from_depth` (rays end where they leave that sphere, see
+Evaluation scores rendered depth against :func:`ray_depth_image`; the pipeline bounds a new run's
+scene by :func:`scene_radius_logged` (rays end where they leave that sphere, see
 ``model_components/sampling.sphere_interval``).
 """
 
@@ -15,6 +15,7 @@ import torch
 from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
 from nerfstudio.data.utils.data_utils import get_depth_image_from_path
+from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor
 
 #: Images read to bound the scene (evenly spaced over the training images).
@@ -116,3 +117,21 @@ def scene_radius_from_depth(
     if radii.numel() == 0:
         return None
     return float(margin * torch.quantile(radii.double(), quantile))
+
+
+def scene_radius_logged(outputs: DataparserOutputs) -> Optional[float]:
+    """:func:`scene_radius_from_depth`, with one log line saying the radius, or why there is none
+    (depth files missing, or no pixel of known depth); silent for a scene without depth images."""
+    missing = missing_depth_files(outputs.metadata)
+    if missing is None:
+        return None
+    if missing:
+        CONSOLE.print(f"[yellow]scene not bounded by depth: {len(missing)} of its depth files are missing (first: {missing[0]})")
+        return None
+    radius = scene_radius_from_depth(outputs)
+    if radius is None:
+        CONSOLE.print("[yellow]scene not bounded by depth: no pixel of its depth images has a known depth")
+    else:
+        CONSOLE.print(f"scene bounded by its depth images: rays end {radius:.3g} units from the centre "
+                      "(--pipeline.model.scene-radius; --pipeline.scene-radius-from-depth False: unbounded)")
+    return radius

@@ -37,8 +37,8 @@ Executor = Union[LocalExecutor, RayExecutor]
 MAX_BLOCKS_PER_GPU = 8
 """The most blocks ``--executor local`` trains on one GPU at once by default."""
 GPU_BYTES_PER_SHARED_BLOCK = 2 * 1024**3
-"""GPU memory counted per block when blocks share a GPU by default: a block of the 3 x 3 town
-(4096 rays per step) used about 1.4 GB with 8 sharing an H200 (docs/benchmarks.md, section 9)."""
+"""GPU memory counted per block when blocks share a GPU by default (bytes): more than a block of the
+3 x 3 town (4096 rays per step) used with 8 sharing one GPU."""
 
 
 def default_local_gpus_per_block(gpu_memory_bytes: List[int], num_blocks: int) -> float:
@@ -47,9 +47,8 @@ def default_local_gpus_per_block(gpu_memory_bytes: List[int], num_blocks: int) -
     :data:`MAX_BLOCKS_PER_GPU` sharing one and no more than the smallest GPU holds at
     :data:`GPU_BYTES_PER_SHARED_BLOCK` each (a share 1/n); 0 (the CPU) without a GPU.
 
-    One block process keeps a GPU far from busy: on one H200, 8 blocks of the 3 x 3 town sharing it
-    finished 1000 steps each in 104 s, against 54.5 s for one block alone, so 436 s one after
-    another (docs/benchmarks.md, section 9).
+    One block process keeps a GPU far from busy, so blocks sharing one finish well before the same
+    blocks trained one after another.
     """
     if not gpu_memory_bytes:
         return 0.0

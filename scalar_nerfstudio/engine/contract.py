@@ -7,7 +7,27 @@ the trainer asks for it once (``isinstance``) instead of guessing attributes.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any, Dict, Optional, Protocol, Tuple, runtime_checkable
+
+
+@dataclass(frozen=True)
+class Phase:
+    """A contiguous range of training steps that trains one model."""
+
+    block: Optional[int]
+    """None: the global model; k: block k's local model."""
+    start_step: int
+    num_steps: int
+
+    @property
+    def end_step(self) -> int:
+        """First step after the phase."""
+        return self.start_step + self.num_steps
+
+    @property
+    def name(self) -> str:
+        return "global" if self.block is None else f"block {self.block}"
 
 
 @runtime_checkable
@@ -21,21 +41,21 @@ class PhasedPipeline(Protocol):
     def total_steps(self) -> int:
         """Steps of all phases together."""
 
-    def phase_at(self, step: int) -> Any:
-        """The phase (``start_step``, ``num_steps``, ``end_step``) that trains at ``step``."""
+    def phase_at(self, step: int) -> Phase:
+        """The phase that trains at ``step``."""
 
-    def end_training_of(self, phase: Any) -> None:
+    def end_training_of(self, phase: Phase) -> None:
         """Called once when ``phase`` has trained its last step (the run's last phase included),
         before :meth:`finish_phase` and the checkpoint: its model finishes its training."""
 
-    def finish_phase(self, phase: Any) -> None:
+    def finish_phase(self, phase: Phase) -> None:
         """Called once when a phase other than the run's last has trained its last step, after
         :meth:`end_training_of`, before the checkpoint written then."""
 
     def attach_run_dir(self, run_dir: Any) -> None:
         """The run folder the pipeline keeps its per-block files in."""
 
-    def param_group_phases(self) -> Dict[str, Tuple[str, Optional[Any]]]:
+    def param_group_phases(self) -> Dict[str, Tuple[str, Optional[Phase]]]:
         """For each optimiser parameter group: (its template key in ``optimizers``, its phase)."""
 
     @property

@@ -12,7 +12,8 @@ from nerfstudio.engine.trainer import Trainer, TrainerConfig
 from nerfstudio.utils import writer
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from scalar_nerfstudio.blocks.plan import load_plan, save_plan
+from scalar_nerfstudio.atomic_io import atomic_torch_save
+from scalar_nerfstudio.blocks.plan import save_plan
 from scalar_nerfstudio.blocks.split import BlockSplitError, load_blocks_json
 from scalar_nerfstudio.config_checks import OptionError, check_block_counts, check_block_plan, check_options, check_output_dir
 from scalar_nerfstudio.data.validation import SceneError, scan_scene
@@ -24,7 +25,7 @@ from scalar_nerfstudio.engine.schedulers import WarmupExponentialDecaySchedulerC
 from scalar_nerfstudio.engine.threads import ThreadGovernor
 from scalar_nerfstudio.runs import (
     RunError,
-    atomic_torch_save,
+    RunSchemaError,
     blocks_json_path,
     checkpoint_name,
     latest_checkpoint_step,
@@ -32,11 +33,9 @@ from scalar_nerfstudio.runs import (
     report_path,
     run_config_path,
     save_run_config,
+    upgrade_run_config,
 )
 
-#: Optimiser templates a config may lack, and the template used then: a config.yml written before
-#: ``block_encoder`` existed trains its block tables with ``encoder``, as they were trained.
-TEMPLATE_FALLBACKS: Dict[str, str] = {"block_encoder": "encoder"}
 #: The template whose rate a global group restarts at in a run of one model (``global_restart_fraction``):
 #: the rate a block's group starts with.
 RESTART_TEMPLATES: Dict[str, str] = {"encoder": "block_encoder", "decoder": "block_decoder"}
@@ -50,12 +49,16 @@ class ScalarTrainerConfig(TrainerConfig):
     max_num_iterations: int = 0
     """Stop after this many steps in total; 0: train every phase (global steps + blocks x block steps)."""
     steps_per_preview: int = 500
-    """Every this many steps, and at the last step, render the first eval view beside its ground truth
-    into RUN/preview.png (and RUN/previews/step-N.png) and log its PSNR; 0: never."""
+    """Every this many steps and at the last, render the first eval view beside its ground truth into
+    RUN/preview.png and RUN/previews/, and log its PSNR; 0: never."""
     adapt_threads: bool = True
     """CPU training: every few seconds, use as many threads as there are cores not busy with other
-    processes (two trainings on 2 cores then take 1 thread each instead of spin-waiting on each other);
-    off, or OMP_NUM_THREADS set: torch's thread count is left alone."""
+    processes; off, or OMP_NUM_THREADS set: torch's thread count is left alone."""
+
+    def __setstate__(self, state: Dict[str, Any]) -> None:
+        """Built from config.yml (YAML, as every nerfstudio command loads a run) or unpickled: a run
+        written by an older version is upgraded first (``runs.upgrade_run_config``)."""
+        self.__dict__.update(upgrade_run_config(state))
 
     def set_timestamp(self) -> None:
         """Check the options and the scene, then resume into the run folder that ``load_dir`` belongs
@@ -89,7 +92,7 @@ class ScalarTrainerConfig(TrainerConfig):
                                train_fraction=dataparser.train_split_fraction, downscale_factor=dataparser.downscale_factor)
         except SceneError as error:
             raise SystemExit(f"{self.method_name}: bad scene: {error}") from None
-        note = scene.conversion_note(getattr(self.pipeline.datamanager, "alpha_background", (1.0, 1.0, 1.0)))
+        note = scene.conversion_note(self.pipeline.datamanager.alpha_background)
         if note is not None:
             CONSOLE.print(f"{self.method_name}: {note}", soft_wrap=True, markup=False, highlight=False)
         self._exit_on_option_error(check_block_counts, self.pipeline, scene.num_train, scene.num_frames)
@@ -110,13 +113,15 @@ class ScalarTrainerConfig(TrainerConfig):
     # ------------------------------------------------------------------------------------------------
 
     def _adopt_run_plan(self, run_dir: Path) -> None:
-        """A resumed run keeps the shape it was planned with (its blocks.json), whatever the options say."""
-        path = blocks_json_path(run_dir)
+        """A resumed run keeps the shape it was planned with (its blocks.json), whatever the options
+        say, once its config.yml records a plan (a run stopped before its plan was recorded, or
+        written before plans were, has its shape decided again, as it was then)."""
         try:
-            load_plan(path)
-        except BlockSplitError:
-            return  # a run from before plans were saved: its shape is decided again, as it was then
-        self.pipeline.run_plan = path.resolve()
+            recorded = load_run_config(run_dir).pipeline.run_plan
+        except RunError as error:
+            raise SystemExit(f"{self.method_name}: cannot resume {run_dir}: {error}") from None
+        if recorded is not None:
+            self.pipeline.run_plan = blocks_json_path(run_dir).resolve()
 
     def _resumed_run_dir(self) -> Optional[Path]:
         if self.load_dir is None:
@@ -173,8 +178,7 @@ class ScalarTrainer(Trainer):
         """One optimiser per parameter group, from the template in ``optimizers`` that fits the group.
 
         A block's groups (``block{k}.encoder`` ...) use the ``block_encoder`` / ``appearance`` templates
-        and ``block_decoder`` for a fine-tuned decoder (a template missing from an older config falls
-        back as :data:`TEMPLATE_FALLBACKS` says); each schedule spans the phase its group trains in.
+        and ``block_decoder`` for a fine-tuned decoder; each schedule spans the phase its group trains in.
         The global model's rate is held after its warm-up when the pipeline says so
         (``holds_global_learning_rate``: blocks follow, ``--pipeline.lr-schedule restart``); in a run of
         one model it is held and then restarts at the rate of the group's :data:`RESTART_TEMPLATES`
@@ -206,11 +210,9 @@ class ScalarTrainer(Trainer):
         return Optimizers(config, param_groups)
 
     def _optimizer_template(self, group: str, template: str) -> str:
-        """``template`` if ``optimizers`` has it, else its :data:`TEMPLATE_FALLBACKS` (an older config.yml)."""
+        """``template``, checked to be in ``optimizers``."""
         if template not in self.config.optimizers:
-            template = TEMPLATE_FALLBACKS.get(template, template)
-            if template not in self.config.optimizers:
-                raise KeyError(f"no optimizer settings for parameter group {group!r} (looked for --optimizers.{template})")
+            raise KeyError(f"no optimizer settings for parameter group {group!r} (looked for --optimizers.{template})")
         return template
 
     def train_iteration(self, step: int):
@@ -341,6 +343,8 @@ class ScalarBlockTrainerConfig(ScalarTrainerConfig):
         config_path = run_config_path(self.global_run)
         try:
             global_config = load_run_config(config_path)
+        except RunSchemaError:
+            raise
         except RunError:
             raise RunError(f"the global run {self.global_run}: no config.yml there (not a scalar-nerf run folder).") from None
         run_dir = config_path.parent
@@ -372,7 +376,7 @@ class ScalarBlockTrainerConfig(ScalarTrainerConfig):
         pipeline.split_seed = global_pipeline.split_seed
         pipeline.min_overlap_images = global_pipeline.min_overlap_images
         for name in ("block_log2_hashmap_size", "block_log2_hashmap_bounds", "block_max_resolution", "block_max_resolution_bounds"):
-            setattr(pipeline, name, getattr(global_pipeline, name, getattr(pipeline, name)))
+            setattr(pipeline, name, getattr(global_pipeline, name))
         # Block settings left at their defaults follow the global run (an explicit value wins).
         defaults = type(pipeline)()
         for name in ("block_steps", "decoder_mode"):

@@ -115,8 +115,8 @@ class ResidentBlocks:
 
 
 def save_block_file(path: Path, block: int, state: Dict[str, Tensor]) -> None:
-    """Write one block's state dict to ``path`` atomically (``runs.atomic_torch_save``)."""
-    from scalar_nerfstudio.runs import atomic_torch_save
+    """Write one block's state dict to ``path`` atomically (``atomic_io.atomic_torch_save``)."""
+    from scalar_nerfstudio.atomic_io import atomic_torch_save
 
     path.parent.mkdir(parents=True, exist_ok=True)
     atomic_torch_save({"block": block, "state": {k: v.detach().cpu() for k, v in state.items()}}, path)

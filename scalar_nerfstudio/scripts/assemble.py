@@ -15,7 +15,8 @@ from typing import Optional, Tuple
 
 import tyro
 
-from scalar_nerfstudio.runs import AssembleError, assemble, run_config_path
+from scalar_nerfstudio.assembly import AssembleError, assemble
+from scalar_nerfstudio.runs import run_config_path
 
 __all__ = ["AssembleArgs", "AssembleError", "assemble", "entrypoint", "main"]
 

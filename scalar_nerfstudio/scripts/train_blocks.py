@@ -64,11 +64,8 @@ class TrainBlocksArgs:
     cpus_per_block: Optional[int] = None
     """CPU cores (and threads) per block (default: the CPUs shared evenly among the blocks, at least 1)."""
     gpus_per_block: Optional[float] = None
-    """GPUs per block. A share 1/n of one (0.5, 0.25, 0.125) trains n blocks on each GPU at once; Ray
-    accepts any fraction. Default without a GPU: 0 (train on the CPU). Default with GPUs: --executor
-    local spreads the blocks over them, up to 8 sharing one GPU and 2 GiB of its memory per block (one
-    block alone leaves a GPU mostly idle; give 1 for one block per GPU at a time, e.g. when the shared
-    blocks run out of GPU memory); Ray gives each block 1."""
+    """GPUs per block; a share 1/n (0.5, 0.25, ...) trains n blocks on each GPU at once. Default: 0 without
+    a GPU; with GPUs, local spreads the blocks over them (up to 8 per GPU, 2 GiB each), Ray gives each 1."""
     max_retries: int = 2
     """Attempts after the first for a block that fails (each in a fresh folder)."""
     output_dir: Optional[Path] = None
@@ -134,7 +131,7 @@ def assemble_blocks(global_dir: Path, runs: Dict[int, Path], assembled_root: Pat
     if fused is not None:
         print(f"already assembled (blocks {names}): {fused}")
     else:
-        from scalar_nerfstudio.runs import AssembleError, assemble
+        from scalar_nerfstudio.assembly import AssembleError, assemble  # torch and the model: only when assembling
 
         try:
             fused = assemble(global_dir, [runs[k] for k in sorted(runs)], assembled_root)
