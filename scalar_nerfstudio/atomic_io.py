@@ -1,10 +1,15 @@
-"""Atomic file writes (standard library only, so light processes such as Ray workers can use it)."""
+"""Atomic file writes (standard library only at import, so light processes such as Ray workers can use
+it; :func:`atomic_torch_save` imports torch when it is called)."""
 
 from __future__ import annotations
 
 import os
 import tempfile
 from pathlib import Path
+from typing import Any, Dict
+
+#: Suffix of the hidden file :func:`atomic_torch_save` writes before renaming it into place.
+PARTIAL_SUFFIX = ".ckpt.partial"
 
 
 def atomic_write_bytes(path: Path, data: bytes) -> None:
@@ -31,3 +36,20 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
 def atomic_write_text(path: Path, text: str) -> None:
     """:func:`atomic_write_bytes` of ``text`` encoded as UTF-8."""
     atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def atomic_torch_save(state: Dict[str, Any], path: Path) -> None:
+    """Write ``state`` to ``path`` so that ``path`` is either absent or complete, never half-written.
+
+    The bytes go to a hidden file in ``path``'s parent's parent (outside the checkpoint folder, whose
+    every file nerfstudio's loaders parse as ``step-N.ckpt``), are fsynced, then renamed into place.
+    """
+    import torch  # here, not at import: light processes (Ray workers) read run folders without torch
+
+    path = Path(path)
+    staging = path.parent.parent / f".{path.stem}{PARTIAL_SUFFIX}"
+    with open(staging, "wb") as handle:
+        torch.save(state, handle)
+        handle.flush()
+        os.fsync(handle.fileno())
+    os.replace(staging, path)
