@@ -1,5 +1,5 @@
-"""Atomic file writes (standard library only, so light processes such as Ray workers can use it;
-:func:`atomic_torch_save` imports torch when it is called)."""
+"""Atomic file writes (standard library only at import, so light processes such as Ray workers can use
+it; :func:`atomic_torch_save` imports torch when it is called)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import tempfile
 from pathlib import Path
 from typing import Any, Dict
 
-#: Suffix of the hidden file a checkpoint is staged in by :func:`atomic_torch_save`.
+#: Suffix of the hidden file :func:`atomic_torch_save` writes before renaming it into place.
 PARTIAL_SUFFIX = ".ckpt.partial"
 
 

@@ -38,8 +38,8 @@ def depth_metrics(predicted: Tensor, truth: Tensor) -> Dict[str, float]:
     """How well a rendered depth map matches the ground truth, over the pixels whose truth is known.
 
     Tells a reconstruction from "fog" (colour right on average, surfaces in the wrong place), which
-    PSNR alone cannot: a model that renders blurred colour from far-away haze still scores 18 dB on
-    the town.
+    PSNR alone cannot: a model that renders blurred colour from far-away haze can still score a
+    fair PSNR.
 
     Args:
         predicted: [H, W, 1] (or [H, W]) rendered distance along each ray.

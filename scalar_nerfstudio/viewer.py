@@ -1,7 +1,7 @@
 """What scalar-nerf adds to nerfstudio's viser viewer.
 
-* a "Fusion" dropdown (global / surface / idw / nearest / nearest-idw / global-only / block:k) that switches how the
-  rendered image is fused, live, during training and on a trained run;
+* a "Fusion" dropdown (every fusion mode of ``scalar_nerfstudio.fusion``, then block:k) that switches how
+  the rendered image is fused, live, during training and on a trained run;
 * the scene overlay: each block's scaled AABB as a wire box, and the training cameras as points
   coloured by block (a camera in several blocks takes its first block's colour);
 * the ``block_colour`` output (chosen in the viewer's output dropdown) is made by the model: each

@@ -11,7 +11,7 @@ import pytest
 import torch
 from nerfstudio.data.scene_box import SceneBox
 
-from conftest import SMALL_FIELD, ray_bundle
+from conftest import SMALL_FIELD, ray_bundle, small_scalar_model
 from scalar_nerfstudio.blocks.split import Block, BlockSplit
 from scalar_nerfstudio.fields.scalar_field import ScalarFieldConfig
 from scalar_nerfstudio.models.block_memory import (
@@ -22,6 +22,7 @@ from scalar_nerfstudio.models.block_memory import (
     release_tensors,
     tensor_specs,
 )
+from scalar_nerfstudio.models.block_store import BlockStore
 from scalar_nerfstudio.models.scene_model import ScalarSceneModel, ScalarSceneModelConfig
 from scalar_nerfstudio.runs import block_model_path
 
@@ -96,6 +97,44 @@ def test_released_tensors_keep_their_objects_and_install_checks_shapes() -> None
         install_tensors(module, {**saved, "weight": torch.zeros(3, 5)}, specs, "block 9")
     with pytest.raises(ValueError, match="1 tensors missing"):
         install_tensors(module, {"weight": saved["weight"]}, specs, "block 9")
+
+
+def test_block_store_keeps_weights_in_files_loads_them_back_bounded_and_never_loses_a_trained_block(tmp_path: Path) -> None:
+    blocks = torch.nn.ModuleDict()
+    store = BlockStore(blocks, max_resident_blocks=1)
+    for block in range(3):
+        store.add_shell(block, small_scalar_model(num_train_data=2))
+    assert all(is_released(blocks[str(b)]) for b in range(3))
+    assert 0 < store.parameter_count(0, "encoder") < store.parameter_count(0)  # known without the weights
+    weights = {k: v.clone() + 1.0 if v.is_floating_point() else v.clone() for k, v in small_scalar_model(num_train_data=2).state_dict().items()}
+    store.install(0, weights, "block 0", evictable=False)
+    assert store.is_resident(0) and torch.equal(blocks["0"].field.encoder.table, weights["field.encoder.table"])
+    with pytest.raises(RuntimeError, match="not saved to its file"):
+        store.release(0, started=True)
+    with pytest.raises(RuntimeError, match="no block store attached"):
+        store.store(0)
+    store.attach(tmp_path)
+    assert store.store(0) == block_model_path(tmp_path, 0) and not store.is_resident(0) and is_released(blocks["0"])
+    with pytest.raises(RuntimeError, match="has not started"):
+        store.model(1)
+    store.install(1, weights, "block 1", evictable=False)
+    store.store(1)
+    assert torch.equal(store.model(0).field.encoder.table, weights["field.encoder.table"])  # loaded from its file
+    store.model(1)  # a second loaded block: the least recently used one (0) leaves memory
+    assert store.resident.blocks == [1] and is_released(blocks["0"])
+
+    owner = torch.nn.Module()
+    owner.blocks = blocks
+    state = store.empty_stored(owner.state_dict())
+    assert all(v.numel() == 0 for k, v in state.items() if k.startswith(("blocks.0.", "blocks.1.")))
+    block_states, rest = BlockStore.split_state({"blocks.0.a": weights["field.encoder.table"], "blocks.7.b": torch.ones(1), "flag": torch.ones(1)}, [0, 2])
+    assert list(block_states) == [0, 2] and list(block_states[0]) == ["a"] and block_states[2] == {} and sorted(rest) == ["blocks.7.b", "flag"]
+
+    store.load({0: {}, 1: {k: v.new_empty(0) for k, v in weights.items()}, 2: weights}, started=[0, 1, 2])
+    assert store.stored == {0, 1} and store.resident.blocks == [2] and not store.resident.is_evictable(2)  # 2 came with the checkpoint
+    block_model_path(tmp_path, 1).unlink()
+    with pytest.raises(FileNotFoundError, match="block 1 has trained"):
+        store.load({1: {}}, started=[1])
 
 
 # ------------------------------------------------------------------------------ the scene model

@@ -16,6 +16,7 @@ from nerfstudio.data.scene_box import SceneBox
 from scalar_nerfstudio.blocks.split import Block, BlockSplit
 from scalar_nerfstudio.fields.scalar_field import ScalarFieldConfig
 from scalar_nerfstudio.fusion import (
+    parse_fusion_mode,
     fuse_outputs,
     fuse_global_guided,
     region_scores,
@@ -24,6 +25,7 @@ from scalar_nerfstudio.fusion import (
     surface_points,
     weights_winner,
 )
+from scalar_nerfstudio.models.block_selection import blocks_for, select_rays
 from scalar_nerfstudio.models.scene_model import ScalarSceneModel, ScalarSceneModelConfig
 from conftest import SMALL_FIELD, ray_bundle
 
@@ -87,6 +89,42 @@ def test_surface_points_fall_back_to_the_origin_for_bad_depths() -> None:
     directions = torch.tensor([[1.0, 0.0, 0.0]] * 4)
     points = surface_points(origins, directions, torch.tensor([[2.0], [NAN], [INF], [-1.0]]))
     assert points.tolist() == [[2.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]]
+
+
+def test_blocks_for_a_mode_are_the_started_ones_it_uses() -> None:
+    started = [0, 2]
+    assert blocks_for(parse_fusion_mode("global-only"), started) == []
+    assert blocks_for(parse_fusion_mode("block:2"), started) == [2]
+    assert blocks_for(parse_fusion_mode("block:1"), started) == []  # not started: the global model renders
+    assert blocks_for(parse_fusion_mode("nearest"), started) == started
+
+
+def test_select_rays_reads_the_global_depth_only_for_the_rules_that_need_it() -> None:
+    centres = torch.tensor([[-1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 5.0]])
+    radii = torch.ones(3)
+    origins = torch.tensor([[-0.9, 0.0, -3.0], [0.9, 0.0, -3.0]])
+    directions = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
+    calls: List[int] = []
+
+    def global_depth() -> torch.Tensor:
+        calls.append(1)
+        return torch.full((2, 1), 3.0)  # the surface points (-0.9, 0, 0) and (0.9, 0, 0)
+
+    def select(mode: str, block_ids: List[int], per_ray: int, observation=None):
+        return select_rays(parse_fusion_mode(mode), block_ids, origins, directions, centres, radii, observation, per_ray, global_depth)
+
+    selected, scores = select("nearest", [0, 1, 2], 2)
+    assert selected.tolist() == [[True, False], [False, True], [False, False]] and scores is None
+    selected, _ = select("global", [0, 1, 2], 0)  # every block on every ray
+    assert bool(selected.all()) and calls == []
+    selected, scores = select("surface", [1, 0], 1)  # rows follow block_ids
+    assert calls == [1] and selected.tolist() == [[False, True], [True, False]] and scores.shape == (2, 2)
+    observation = torch.ones(2, 4**3, dtype=torch.bool)
+    observation[1] = False  # block 1 observes nothing
+    selected, _ = select("surface", [0, 1], 1, observation)
+    assert selected.tolist() == [[True, True], [False, False]]  # block 1's ray takes block 0, the one observing it
+    selected, _ = select("block:0", [0], 1)
+    assert selected.tolist() == [[True, True]]
 
 
 def test_surface_fusion_takes_the_block_holding_the_surface_and_never_a_missing_one() -> None:

@@ -160,7 +160,7 @@ def test_sample_skipping_starts_with_the_grid_pruning_and_is_restored_from_a_che
 @pytest.mark.parametrize("opacity", [0.3, 3.0])
 def test_rendering_front_to_back_in_segments_gives_the_one_pass_image_with_fewer_evaluations(opacity: float, monkeypatch: pytest.MonkeyPatch) -> None:
     """Rays that turned opaque stop being evaluated, and the image is the one-pass image."""
-    import scalar_nerfstudio.models.scalar_model as scalar_model_module
+    import scalar_nerfstudio.model_components.visibility as visibility_module
 
     torch.manual_seed(0)
     model = small_scalar_model()
@@ -180,7 +180,7 @@ def test_rendering_front_to_back_in_segments_gives_the_one_pass_image_with_fewer
     monkeypatch.setattr(model.field, "density_at_unit", counting)
     outputs = {}
     for segments in (1, 4, 64):
-        monkeypatch.setattr(scalar_model_module, "RENDER_SEGMENTS", segments)
+        monkeypatch.setattr(visibility_module, "RENDER_SEGMENTS", segments)
         evaluated.append(0)
         with torch.no_grad():
             outputs[segments] = model.render_rays(rays, normals=False)
@@ -244,9 +244,9 @@ def test_a_training_step_encodes_each_sample_once_with_the_gradients_of_encoding
         outputs["rgb"].square().sum().backward()
         return outputs, model.field.encoder.table.grad.clone(), model.field.decoder.density_mlp[0].weight.grad.clone()
 
-    import scalar_nerfstudio.models.scalar_model as scalar_model_module
+    import scalar_nerfstudio.model_components.visibility as visibility_module
 
-    monkeypatch.setattr(scalar_model_module, "_CHUNK", 500)  # the no-grad pass in several chunks
+    monkeypatch.setattr(visibility_module, "DENSITY_CHUNK", 500)  # the no-grad pass in several chunks
     monkeypatch.setattr(encoder, "forward", counting_forward)
     outputs, table_grad, decoder_grad = gradients()
     kept = int(outputs["samples_per_ray"].sum())

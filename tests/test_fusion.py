@@ -469,3 +469,19 @@ def test_fuse_outputs_rgb_only() -> None:
     blocks = [{"rgb": torch.rand(4, 3)} for _ in range(2)]
     out = fuse_outputs("global", blocks, {"rgb": torch.rand(4, 3), "depth": torch.rand(4, 1)}, None, None)
     assert set(out) == {"rgb", "block_winner"}
+
+
+def test_the_fusion_package_exports_every_name_and_needs_torch_alone() -> None:
+    import ast
+    import pathlib
+
+    import scalar_nerfstudio.fusion as fusion
+
+    assert all(hasattr(fusion, name) for name in fusion.__all__)
+    for path in pathlib.Path(fusion.__file__).parent.glob("*.py"):
+        tree = ast.parse(path.read_text())
+        modules = {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module}
+        modules |= {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
+        allowed = {"__future__", "collections", "dataclasses", "typing", "math", "torch", "scalar_nerfstudio"}
+        assert {m.split(".")[0] for m in modules} <= allowed, (path.name, modules)
+        assert all(m.startswith("scalar_nerfstudio.fusion.") for m in modules if m.startswith("scalar_nerfstudio")), path.name

@@ -268,19 +268,16 @@ class ScalarFieldConfig(InstantiateConfig):
     encoder_implementation: Literal["auto", "cpp", "cuda", "torch"] = "auto"
     """Hash-grid kernel: "auto" uses the C++ kernel on CPU and the CUDA kernel on CUDA, each when it
     builds (a warning says when not), torch otherwise."""
+    # The paper's decoder is 128 wide (Sec. 4); 64 (Instant-NGP's width) trains faster on the CPU with
+    # held-out quality at least as high at equal wall-clock (benchmark notes: "A narrower decoder").
     hidden_dim: int = 64
-    """Width of the decoder's hidden layers. The paper's decoder is 128 wide (Sec. 4); 64 (Instant-NGP's
-    width) trains 1.33-1.37x faster on the CPU (castle-P30, fox) with held-out PSNR at least as high at
-    equal wall-clock; at equal steps fox scored 0.91 dB lower (docs/benchmarks.md, "A narrower
-    decoder"). ``128`` gives the paper's decoder."""
+    """Width of the decoder's hidden layers (neurons); 128 gives the paper's decoder."""
     decoder_precision: Literal["auto", "float32", "bfloat16"] = "auto"
-    """Matrix products of the decoder on CPU. "auto": bfloat16 where the CPU multiplies bfloat16
-    natively (about 2x faster decoder), else float32. Densities, colours, the hash grid and volume
-    rendering stay float32. On CUDA the trainer's mixed precision decides instead."""
+    """Precision of the decoder's matrix products on CPU; "auto": bfloat16 where the CPU multiplies it
+    natively, else float32. On CUDA the trainer's mixed precision decides."""
     fused_decoder: bool = True
-    """Train the bfloat16 decoder on the CPU through the fused C++ kernels of csrc/mlp.cpp (one pass
-    per layer for forward and for backward, AVX512-BF16) where the CPU has AVX512-BF16; ``False``, or
-    a CPU without it, uses autograd's layer-by-layer bfloat16 products."""
+    """Train the bfloat16 decoder on the CPU through the fused C++ kernels (csrc/mlp.cpp) where the CPU
+    has AVX512-BF16; off: autograd's layer-by-layer bfloat16 products."""
     geo_feat_dim: int = 15
     """Features from the density head to the colour head."""
     appearance_dim: int = 8

@@ -10,6 +10,9 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+#: Background colour outside training (evaluation, rendering, the viewer, exports).
+EVAL_BACKGROUND = 0.5
+
 # exp(-MAX_OPTICAL_DEPTH) is ~1e-22: any larger optical depth is fully opaque in float32 anyway.
 MAX_OPTICAL_DEPTH = 50.0
 

@@ -19,6 +19,8 @@ from typing import Dict, Iterable, List, Optional, Tuple
 import torch
 from torch import Tensor, nn
 
+from scalar_nerfstudio.atomic_io import atomic_torch_save
+
 TensorSpec = Tuple[torch.Size, torch.dtype]
 
 
@@ -115,9 +117,7 @@ class ResidentBlocks:
 
 
 def save_block_file(path: Path, block: int, state: Dict[str, Tensor]) -> None:
-    """Write one block's state dict to ``path`` atomically (``atomic_io.atomic_torch_save``)."""
-    from scalar_nerfstudio.atomic_io import atomic_torch_save
-
+    """Write one block's state dict to ``path`` atomically (:func:`~scalar_nerfstudio.atomic_io.atomic_torch_save`)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     atomic_torch_save({"block": block, "state": {k: v.detach().cpu() for k, v in state.items()}}, path)
 

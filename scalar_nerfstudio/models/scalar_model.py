@@ -9,7 +9,8 @@ Rendering path (per ray batch, flat tensors, no nerfstudio RaySamples on the hot
    transparent than ``alpha_threshold`` over their interval.
 3. A no-grad density pass over the remaining samples finds where each ray's transmittance has
    fallen below ``transmittance_threshold``; those occluded samples are dropped too, and so are
-   samples more transparent than ``alpha_threshold`` once the grid has warmed up.
+   samples more transparent than ``alpha_threshold`` once the grid has warmed up. Steps 2 and 3 are
+   the :class:`~scalar_nerfstudio.model_components.visibility.VisibilitySampler`.
 4. The field (density and colour, with gradients) runs only on the surviving samples, which are
    scattered back into a dense ``[R, S]`` layout for volume rendering.
 5. Only when normals are wanted (see :class:`NormalsOutput`): the density's gradient with respect
@@ -19,23 +20,22 @@ Rendering path (per ray batch, flat tensors, no nerfstudio RaySamples on the hot
 
 from __future__ import annotations
 
-import math
 import warnings
-from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Dict, Iterator, List, Literal, Optional, Tuple, Type, get_args
+from typing import Dict, List, Literal, Optional, Tuple, Type
 
 import torch
 from nerfstudio.cameras.rays import RayBundle
-from nerfstudio.model_components.scene_colliders import NearFarCollider
 from nerfstudio.models.base_model import Model, ModelConfig
 from torch import Tensor
 from torch.nn import Parameter
 
 from scalar_nerfstudio.fields.scalar_field import ScalarField, ScalarFieldConfig, contract_rays_to_unit_cube, contract_to_unit_cube, to_region_frame, unit_cube_to_world
 from scalar_nerfstudio.metrics import ImageMetrics, depth_metrics, psnr
+from scalar_nerfstudio.model_components.colliders import BoundedNearFarCollider
+from scalar_nerfstudio.model_components.ray_samples import RaySamples, neutralise_bad_rays
 from scalar_nerfstudio.model_components.rendering import (
-    alphas_from_densities,
+    EVAL_BACKGROUND,
     composite,
     distortion_loss,
     facing_normals,
@@ -44,71 +44,34 @@ from scalar_nerfstudio.model_components.rendering import (
     render_normals,
     render_weights,
     safe_normalise,
-    weights_from_alphas,
 )
-from scalar_nerfstudio.model_components.sampling import OccupancyGrid, lin_disp_spacing, sample_intervals, sphere_interval
+from scalar_nerfstudio.model_components.sampling import OccupancyGrid, lin_disp_spacing, sample_intervals
+from scalar_nerfstudio.model_components.visibility import DENSITY_CHUNK, VisibilitySampler
+from scalar_nerfstudio.models.normals import RENDER_NORMALS, NormalsOutput, RenderNormals, check_render_normals
 
-_CHUNK = 1 << 16
-#: Front-to-back segments of the samples at render time (rays that turned opaque stop being evaluated).
-RENDER_SEGMENTS = 4
+__all__ = [
+    "EVAL_BACKGROUND",
+    "RENDER_NORMALS",
+    "BoundedNearFarCollider",
+    "NormalsOutput",
+    "RenderNormals",
+    "ScalarModel",
+    "ScalarModelConfig",
+    "check_render_normals",
+    "near_far_collider",
+]
+
 #: Points per autograd pass of the normals (their graph holds ~1.5 kB per point at 16 levels x 4 features).
 _NORMALS_CHUNK = 1 << 15
 #: Samples lighter than this rendering weight get no normal (they add < 1e-4 each to the ray's sum).
 NORMALS_MIN_WEIGHT = 1e-4
-#: Background colour outside training (evaluation, rendering, the viewer, exports).
-EVAL_BACKGROUND = 0.5
-
-RenderNormals = Literal["rays", "always", "never"]
-RENDER_NORMALS: Tuple[str, ...] = get_args(RenderNormals)
-
-
-def _neutralise_bad_rays(origins: Tensor, directions: Tensor, nears: Tensor, fars: Tensor) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Rays [R, 3] with a NaN/inf origin or direction (or near/far) are reported and made empty.
-
-    They render as the background with zero accumulation instead of spreading NaN through the batch.
-    """
-    bad = ~(torch.isfinite(origins).all(-1) & torch.isfinite(directions).all(-1) & torch.isfinite(nears[:, 0]) & torch.isfinite(fars[:, 0]))
-    if not bool(bad.any()):
-        return origins, directions, nears, fars
-    warnings.warn(f"{int(bad.sum())} of {bad.numel()} rays have a NaN/inf origin, direction or near/far; they render as background.")
-    keep = ~bad[:, None]
-    origins = torch.where(keep, origins, torch.zeros_like(origins))
-    directions = torch.where(keep, directions, torch.tensor([0.0, 0.0, 1.0], dtype=directions.dtype, device=directions.device))
-    nears = torch.where(keep, nears, torch.ones_like(nears))
-    fars = torch.where(keep, fars, torch.ones_like(fars))
-    return origins, directions, nears, fars
-
-
-class BoundedNearFarCollider(NearFarCollider):
-    """nerfstudio's NearFarCollider, and, with a ``scene_radius``, rays kept inside the sphere of that
-    radius around the origin: a ray starts no earlier than where it enters the sphere and ends
-    where it leaves it (or at the far plane, if that comes first); a ray that misses it is empty
-    (near = far) and renders as the background."""
-
-    def __init__(self, near_plane: float, far_plane: float, reset_near_plane: bool, scene_radius: Optional[float] = None) -> None:
-        super().__init__(near_plane=near_plane, far_plane=far_plane, reset_near_plane=reset_near_plane)
-        if scene_radius is not None and not (math.isfinite(scene_radius) and scene_radius > 0):
-            raise ValueError(f"scene radius {scene_radius}: must be a finite number > 0 (None: unbounded)")
-        self.scene_radius = scene_radius
-
-    def set_nears_and_fars(self, ray_bundle: RayBundle) -> RayBundle:
-        ray_bundle = super().set_nears_and_fars(ray_bundle)
-        if self.scene_radius is None or ray_bundle.nears is None or ray_bundle.fars is None:
-            return ray_bundle
-        shape = ray_bundle.nears.shape
-        t_entry, t_exit = sphere_interval(ray_bundle.origins.reshape(-1, 3), ray_bundle.directions.reshape(-1, 3), self.scene_radius)
-        nears = torch.maximum(ray_bundle.nears.reshape(-1, 1), t_entry.to(ray_bundle.nears.dtype))
-        fars = torch.maximum(torch.minimum(ray_bundle.fars.reshape(-1, 1), t_exit.to(ray_bundle.fars.dtype)), nears)
-        ray_bundle.nears = nears.reshape(shape)
-        ray_bundle.fars = fars.reshape(shape)
-        return ray_bundle
 
 
 def near_far_collider(config: "ScalarModelConfig") -> BoundedNearFarCollider:
     """Rays from ``config.near_plane`` to ``config.far_plane``, inside the sphere of
     ``config.scene_radius`` when there is one; outside training the near plane is kept, unless
-    ``config.reset_near_plane`` (nerfstudio's default) starts rays at the camera. A config.yml from
-    before 2026-11-26 has no ``scene_radius``: unbounded, as it was trained."""
+    ``config.reset_near_plane`` (nerfstudio's default) starts rays at the camera. A config.yml written
+    before ``scene_radius`` existed has none: unbounded, as it was trained."""
     return BoundedNearFarCollider(
         near_plane=config.near_plane, far_plane=config.far_plane, reset_near_plane=config.reset_near_plane,
         scene_radius=getattr(config, "scene_radius", None),
@@ -124,30 +87,25 @@ class ScalarModelConfig(ModelConfig):
     """Encoder / decoder hyper-parameters."""
     near_plane: float = 0.05
     """Ray start (world units of the normalised scene)."""
+    # Off by default: no training camera sees the space within near_plane of itself, so a novel camera
+    # starting its rays at 0 renders whatever the field left there as a veil in front of it.
     reset_near_plane: bool = False
-    """Start rays at the camera (near 0) when not training, as nerfstudio's colliders do by default.
-    Off: evaluation, ns-render and the viewer start rays at ``near_plane`` like training does. No
-    training camera ever sees the space within ``near_plane`` of itself, and a novel camera that
-    stands where only distant cameras looked through would render whatever the field put there
-    right in front of it as a veil (castle-P30's eval image 8, see docs/benchmarks.md)."""
+    """Start rays at the camera (near 0) outside training, as nerfstudio's colliders do; off: rays
+    start at ``near_plane`` in evaluation, ns-render and the viewer as in training."""
     far_plane: float = 1000.0
-    """Ray end; far points contract to the boundary of the unit cube."""
+    """Ray end (world units); far points contract to the boundary of the unit cube."""
+    # A bound keeps a small table from putting coloured haze far behind the surfaces; on a capture
+    # with sky and far content, a bound set by hand can break training.
     scene_radius: Optional[float] = None
-    """Rays end where they leave the sphere of this radius around the origin (world units of the
-    normalised scene), if that comes before ``far_plane``; a ray from outside starts where it
-    enters it. None: unbounded. Set by the pipeline from the scene's depth images when it has them
-    (``--pipeline.scene-radius-from-depth``): a small table otherwise puts coloured haze far behind
-    the surfaces, in the deep shell the far plane leaves it (docs/town.md). Set by hand on a capture
-    with sky and far content, it can break training: castle-P30 scored 16.6-17.0 dB held out with
-    radius 6 or 20 against 22.6 unbounded, unless the training background was grey (22.0; docs/town.md,
-    "A bound on a real capture")."""
+    """Keep rays inside the sphere of this radius around the origin (world units of the normalised
+    scene); None: unbounded. Set by ``--pipeline.scene-radius-from-depth`` from the depth images."""
     num_samples_per_ray: int = 64
     """Intervals per ray before empty-space and occlusion skipping."""
+    # A coarse start makes the warm-up steps cheaper and trains better; a block seeded from the global
+    # model has no warm-up.
     warmup_samples_per_ray: int = 16
     """Intervals per training ray while the occupancy grid warms up (at most ``num_samples_per_ray``;
-    0: ``num_samples_per_ray``). Nothing is skipped then, so every interval runs with gradients. A
-    coarse start (coarse to fine) makes those steps 4x cheaper and ended about 1 dB better on
-    castle-P30 (docs/benchmarks.md). A block seeded from the global model has no warm-up."""
+    0: ``num_samples_per_ray``)."""
     occupancy_resolution: int = 64
     """Occupancy-grid cells per axis of the contracted cube."""
     occupancy_update_every: int = 16
@@ -156,130 +114,26 @@ class ScalarModelConfig(ModelConfig):
     """Steps during which every occupancy update re-evaluates all cells."""
     occupancy_opacity_threshold: float = 0.01
     """A cell is empty when its opacity (density over the cell's size) stays below min(this, mean)."""
+    # The render grid is estimated at every cell's corners from the final field; the training grid is
+    # coarser and remembers haze from earlier steps, so rendering evaluates fewer samples for the same image.
     render_occupancy_resolution: int = 128
-    """Cells per axis of the render grid: when a model's training ends, a second occupancy grid is
-    estimated from the final field at every cell's corners (129^3, about 2 M field evaluations at
-    128, about 0.5 s on castle-P30 on 2 cores) and saved with the model; rendering outside training
-    uses it instead of the training grid, which is coarser and remembers haze from earlier steps
-    (castle-P30: 34 instead of 45 samples evaluated per ray, the same image; docs/benchmarks.md
-    section 5). 0: rendering uses the training grid."""
+    """Cells per axis of the render grid, estimated from the final field when training ends and used
+    outside training instead of the training grid; 0: rendering uses the training grid."""
     transmittance_threshold: float = 1e-3
     """Samples behind the point where a ray's transmittance drops below this are not evaluated."""
     alpha_threshold: float = 0.01
-    """Once the occupancy grid marks cells empty (after its warm-up), samples whose opacity in the
-    no-grad density pass is below this are not evaluated with gradients either (nerfacc's
-    alpha_thre; 0 disables it). Skipped samples are not rendered, in training or evaluation."""
+    """Once the occupancy grid prunes, samples whose opacity in the no-grad density pass is below this
+    are neither evaluated with gradients nor rendered (nerfacc's alpha_thre; 0 disables it)."""
     grid_alpha_skip: bool = True
-    """Under the same conditions, samples whose opacity over their interval, from the largest
-    density estimate of their occupancy cell and the 6 cells beside it, is below ``alpha_threshold``
-    are not evaluated at all (:meth:`OccupancyGrid.worth_evaluating`): the faint haze that keeps a
-    cell occupied no longer costs a field evaluation per sample."""
+    """Once the grid prunes, skip without a field evaluation the samples that the grid's density
+    estimates (their cell and its 6 neighbours) make more transparent than ``alpha_threshold``."""
     distortion_loss_mult: float = 0.002
     """Weight of Mip-NeRF 360's distortion loss (0 disables it)."""
     background_color: Literal["random", "grey"] = "random"
     """Training background (random teaches opaque geometry); evaluation always uses grey."""
     render_normals: RenderNormals = "rays"
-    """When the ``normals`` output (density-gradient normals, in [0, 1] as (n + 1) / 2) is computed,
-    never in training: "rays" (default) for ray batches rendered outside training (what
-    ``ns-export pointcloud`` / ``poisson`` render) but not for camera images (eval, ns-render, the
-    viewer), which then cost nothing extra; "always" also for camera images (the viewer lists
-    ``normals``); "never"."""
-
-
-def check_render_normals(mode: str) -> RenderNormals:
-    """``mode`` if it is one of :data:`RENDER_NORMALS`, else a ValueError naming them."""
-    if mode not in RENDER_NORMALS:
-        raise ValueError(f"render_normals {mode!r}: expected one of {', '.join(RENDER_NORMALS)}")
-    return mode  # type: ignore[return-value]
-
-
-class NormalsOutput:
-    """When a nerfstudio :class:`Model` adds the ``normals`` output; its RGBA image (mixin).
-
-    ``render_normals`` (initialised from the config, settable at run time, or for a block of code
-    with :meth:`rendering_normals`) is "rays", "always" or "never" (see
-    :attr:`ScalarModelConfig.render_normals`). Camera images are told apart from ray batches by
-    :meth:`get_outputs_for_camera_ray_bundle`, through which every camera render of nerfstudio
-    (eval, ns-render, the viewer, the TSDF export) passes.
-    """
-
-    training: bool
-    _render_normals: RenderNormals
-    _camera_renders: int
-
-    def _init_normals_output(self, mode: str) -> None:
-        self._render_normals = check_render_normals(mode)
-        self._camera_renders = 0
-
-    @property
-    def render_normals(self) -> RenderNormals:
-        """"rays", "always" or "never": when rendering outside training adds ``normals``."""
-        return self._render_normals
-
-    @render_normals.setter
-    def render_normals(self, mode: RenderNormals) -> None:
-        self._render_normals = check_render_normals(mode)
-
-    @contextmanager
-    def rendering_normals(self, mode: RenderNormals = "always") -> Iterator[None]:
-        """Use ``mode`` for :attr:`render_normals` inside the ``with`` block."""
-        previous = self._render_normals
-        self.render_normals = mode
-        try:
-            yield
-        finally:
-            self._render_normals = previous
-
-    def normals_wanted(self) -> bool:
-        """Whether the render running now adds ``normals`` (never in training)."""
-        if self.training or self._render_normals == "never":
-            return False
-        return self._render_normals == "always" or self._camera_renders == 0
-
-    @torch.no_grad()
-    def get_outputs_for_camera_ray_bundle(self, camera_ray_bundle: RayBundle) -> Dict[str, Tensor]:
-        """nerfstudio's chunked camera render, marked as a camera image (see :meth:`normals_wanted`)."""
-        self._camera_renders += 1
-        try:
-            return super().get_outputs_for_camera_ray_bundle(camera_ray_bundle)  # type: ignore[misc]
-        finally:
-            self._camera_renders -= 1
-
-    def get_rgba_image(self, outputs: Dict[str, Tensor], output_name: str = "rgb") -> Tensor:
-        """[..., 4]: the colour without the background and the accumulation as alpha.
-
-        Outside training the background is :data:`EVAL_BACKGROUND` grey, so ``rgb = c + (1 - a) grey``
-        and the foreground colour is ``c / a``. nerfstudio's exporters keep the points / pixels of
-        alpha > 0.5 (``ns-export pointcloud``) and texture meshes with this colour.
-        """
-        accumulation_name = output_name.replace("rgb", "accumulation")
-        if output_name not in outputs or accumulation_name not in outputs:
-            raise KeyError(f"get_rgba_image needs outputs {output_name!r} and {accumulation_name!r}; got {sorted(outputs)}")
-        rgb = outputs[output_name]
-        accumulation = outputs[accumulation_name]
-        if accumulation.dim() < rgb.dim():
-            accumulation = accumulation.unsqueeze(-1)
-        foreground = (rgb - (1.0 - accumulation) * EVAL_BACKGROUND) / accumulation.clamp_min(1e-6)
-        foreground = torch.where(accumulation > 1e-6, foreground, torch.full_like(foreground, EVAL_BACKGROUND))
-        return torch.cat((torch.nan_to_num(foreground, nan=EVAL_BACKGROUND).clamp(0.0, 1.0), accumulation.clamp(0.0, 1.0)), dim=-1)
-
-
-@dataclass(frozen=True)
-class _RaySamples:
-    """Samples along R rays, S per ray (:meth:`ScalarModel._ray_samples`)."""
-
-    origins: Tensor  # [R, 3]
-    directions: Tensor  # [R, 3]
-    fars: Tensor  # [R, 1]
-    t_starts: Tensor  # [R, S]
-    t_ends: Tensor  # [R, S]
-    t_mid: Tensor  # [R, S]
-    unit_positions: Tensor  # [R*S, 3] contracted unit cube
-
-    def world_positions(self, sample_ids: Tensor) -> Tensor:
-        """[M] flat sample indices into [R*S] -> [M, 3] their world positions."""
-        ray_ids = torch.div(sample_ids, self.t_mid.shape[1], rounding_mode="floor")
-        return self.origins[ray_ids] + self.directions[ray_ids] * self.t_mid.reshape(-1)[sample_ids, None]
+    """When the ``normals`` output (in [0, 1]) is computed outside training: "rays" for ray batches
+    (ns-export) but not camera images, "always" also for camera images (the viewer), "never"."""
 
 
 class ScalarModel(NormalsOutput, Model):
@@ -421,7 +275,7 @@ class ScalarModel(NormalsOutput, Model):
     def _density_no_grad(self, unit_positions: Tensor) -> Tensor:
         """[M, 3] contracted unit-cube positions -> [M] float32 density, evaluated in chunks without grad."""
         return torch.cat(
-            [self.field.density_at_unit(chunk)[0].float() for chunk in torch.split(unit_positions, _CHUNK)]
+            [self.field.density_at_unit(chunk)[0].float() for chunk in torch.split(unit_positions, DENSITY_CHUNK)]
         ) if unit_positions.shape[0] > 0 else unit_positions.new_zeros(0)
 
     # ---------------------------------------------------------------------------------- rendering
@@ -446,10 +300,10 @@ class ScalarModel(NormalsOutput, Model):
         deltas = t_ends - t_starts
 
         if torch.is_grad_enabled():  # training: the density of the kept samples again, with gradients
-            sample_ids, encoding = self._visible_samples(unit_positions, deltas)  # [M] flat indices into R*S, [M, L*F]
+            sample_ids, encoding = self.visibility().visible(unit_positions, deltas)  # [M] flat indices into R*S, [M, L*F]
             density, geo = self.field.density_at_unit(unit_positions[sample_ids], encoding=encoding)
         else:  # rendering: one field pass over the occupied samples serves the occlusion test and the colour
-            sample_ids, density, geo = self._visible_samples_with_features(unit_positions, deltas)
+            sample_ids, density, geo = self.visibility().visible_with_features(unit_positions, deltas)
         ray_ids = torch.div(sample_ids, num_samples, rounding_mode="floor")
         rgb_points = self.field.colour(geo, directions, ray_ids, camera_indices)
         # Volume rendering in float32 also under autocast (bf16/fp16 cumulative sums drift).
@@ -496,7 +350,7 @@ class ScalarModel(NormalsOutput, Model):
         weights, _ = render_weights(densities.reshape(samples.t_mid.shape), samples.t_ends - samples.t_starts)
         return {"depth": render_depth(weights, samples.t_mid, samples.fars), "accumulation": weights.sum(dim=-1, keepdim=True)}
 
-    def _ray_samples(self, ray_bundle: RayBundle, jitter: bool) -> "_RaySamples":
+    def _ray_samples(self, ray_bundle: RayBundle, jitter: bool) -> "RaySamples":
         """The samples along a (collided) batch of rays: bad rays neutralised, then
         ``num_samples_per_ray`` intervals from near to far (jittered if ``jitter``; while training
         during the occupancy warm-up, ``warmup_samples_per_ray``)."""
@@ -505,16 +359,16 @@ class ScalarModel(NormalsOutput, Model):
         num_rays = origins.shape[0]
         nears = ray_bundle.nears.reshape(-1, 1) if ray_bundle.nears is not None else origins.new_full((num_rays, 1), self.config.near_plane)
         fars = ray_bundle.fars.reshape(-1, 1) if ray_bundle.fars is not None else origins.new_full((num_rays, 1), self.config.far_plane)
-        origins, directions, nears, fars = _neutralise_bad_rays(origins, directions, nears, fars)
+        origins, directions, nears, fars = neutralise_bad_rays(origins, directions, nears, fars)
         num_samples = self.config.num_samples_per_ray
         if self.training and self.occupancy.warming_up and self.config.warmup_samples_per_ray > 0:
             num_samples = min(self.config.warmup_samples_per_ray, num_samples)
         t_starts, t_ends = sample_intervals(nears, fars, num_samples, jitter=jitter)
         t_mid = (t_starts + t_ends) / 2.0
         unit_positions = contract_rays_to_unit_cube(origins, directions, t_mid, self.region_centre, self.region_radius)  # [R*S, 3]
-        return _RaySamples(origins, directions, fars, t_starts, t_ends, t_mid, unit_positions)
+        return RaySamples(origins, directions, fars, t_starts, t_ends, t_mid, unit_positions)
 
-    def _ray_normals(self, samples: "_RaySamples", sample_ids: Tensor, weights: Tensor) -> Tensor:
+    def _ray_normals(self, samples: "RaySamples", sample_ids: Tensor, weights: Tensor) -> Tensor:
         """Expected unit normal per ray, [R, 3] in [-1, 1].
 
         Args:
@@ -556,109 +410,13 @@ class ScalarModel(NormalsOutput, Model):
         """[N, 3] world positions -> [N, 3] in the model's region frame (centre 0, radius 1)."""
         return to_region_frame(positions, self.region_centre, self.region_radius)
 
-    @torch.no_grad()
-    def _visible_samples(self, unit_positions: Tensor, deltas: Tensor) -> Tuple[Tensor, Optional[Tensor]]:
-        """The samples that are in occupied cells and not occluded: ([M] flat indices into the [R*S]
-        samples, [M, L*F] their hash-grid encoding from the no-grad pass, or None when there was no
-        such pass), so that the pass with gradients does not encode them again."""
-        if self.config.transmittance_threshold <= 0:
-            return torch.nonzero(self.samples_grid().is_occupied(unit_positions)).squeeze(-1), None
-        candidate_ids = torch.nonzero(self._worth_evaluating(unit_positions, deltas.reshape(-1))).squeeze(-1)
-        if candidate_ids.numel() == 0:
-            return candidate_ids, None
-        candidates = unit_positions[candidate_ids]
-        densities: List[Tensor] = []
-        encodings: List[Tensor] = []
-        for chunk in torch.split(candidates, _CHUNK):
-            encodings.append(self.field.encoder(chunk))
-            densities.append(self.field.density_at_unit(chunk, encoding=encodings[-1])[0].float())
-        keep = self._kept_candidates(candidate_ids, torch.cat(densities), deltas)
-        kept_encoding = torch.cat([encoding[chunk_keep] for encoding, chunk_keep in zip(encodings, torch.split(keep, _CHUNK))])
-        return candidate_ids[keep], kept_encoding
-
-    @torch.no_grad()
-    def _visible_samples_with_features(self, unit_positions: Tensor, deltas: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
-        """:meth:`_visible_samples` without gradients, keeping what the field computed on the way:
-        ([M] flat sample indices, [M] density, [M, F] geometry features).
-
-        The samples are taken front to back in :data:`RENDER_SEGMENTS` segments along the rays: a
-        segment evaluates only the rays whose transmittance is still above the threshold, so the
-        occupied samples behind a surface are never evaluated (the kept samples and their values are
-        those of one pass over every occupied sample)."""
-        num_rays, num_samples = deltas.shape
-        threshold = self.config.transmittance_threshold
-        if threshold <= 0 or num_rays == 0:
-            candidate_ids = torch.nonzero(self.samples_grid().is_occupied(unit_positions)).squeeze(-1)
-            density, geo = self.field.density_at_unit(unit_positions[candidate_ids])
-            return candidate_ids, density, geo
-        occupied = self._worth_evaluating(unit_positions, deltas.reshape(-1)).reshape(num_rays, num_samples)
-        log_threshold = math.log(threshold)
-        depth_before = deltas.new_zeros(num_rays)  # [R] optical depth in front of the segment
-        kept_ids: List[Tensor] = []
-        kept_density: List[Tensor] = []
-        kept_geo: List[Tensor] = []
-        bounds = torch.linspace(0, num_samples, min(RENDER_SEGMENTS, num_samples) + 1).round().long().tolist()
-        for start, end in zip(bounds[:-1], bounds[1:]):
-            alive = -depth_before > log_threshold  # [R] light still reaches the segment
-            rays, offsets = torch.nonzero(occupied[:, start:end] & alive[:, None], as_tuple=True)
-            if rays.numel() == 0:
-                if not bool(alive.any()):
-                    break
-                continue
-            ids = rays * num_samples + start + offsets
-            density, geo = self.field.density_at_unit(unit_positions[ids])
-            densities = deltas.new_zeros(num_rays, end - start)
-            densities[rays, offsets] = density.float()
-            alphas = alphas_from_densities(densities, deltas[:, start:end])
-            optical = -torch.log1p(-alphas.clamp(0.0, 1.0 - 1e-7))
-            accumulated = torch.cumsum(optical, dim=-1) + depth_before[:, None]
-            before = torch.cat([depth_before[:, None], accumulated[:, :-1]], dim=-1)  # [R, seg] in front of each sample
-            keep = torch.exp(-before[rays, offsets]) > threshold
-            if self._skips_transparent_samples():
-                keep &= alphas[rays, offsets] > self.config.alpha_threshold
-            kept_ids.append(ids[keep])
-            kept_density.append(density[keep])
-            kept_geo.append(geo[keep])
-            depth_before = accumulated[:, -1]
-        if not kept_ids:
-            empty = unit_positions[:0]
-            density, geo = self.field.density_at_unit(empty)
-            return torch.zeros(0, dtype=torch.long, device=unit_positions.device), density, geo
-        return torch.cat(kept_ids), torch.cat(kept_density), torch.cat(kept_geo)
-
-    def _skips_transparent_samples(self) -> bool:
-        """Whether samples more transparent than ``alpha_threshold`` are dropped now: once the
-        occupancy grid marks cells empty (after its warm-up), unless the threshold is 0, and not
-        while this model's field settles into a grid seeded from another model's
-        (:attr:`OccupancyGrid.settling`)."""
-        grid = self.samples_grid()
-        return self.config.alpha_threshold > 0 and grid.pruning and not grid.settling
-
-    @torch.no_grad()
-    def _worth_evaluating(self, unit_positions: Tensor, deltas: Tensor) -> Tensor:
-        """[R*S] bool: the samples (unit-cube positions [R*S, 3], world interval lengths [R*S]) the
-        field evaluates: those in occupied cells and, once the grid prunes (as for the rendered
-        samples' ``alpha_threshold``), only those the grid's estimates make opaque enough
-        (``grid_alpha_skip``)."""
-        grid = self.samples_grid()
-        if self.config.grid_alpha_skip and self._skips_transparent_samples():
-            return grid.worth_evaluating(unit_positions, deltas, self.config.alpha_threshold)
-        return grid.is_occupied(unit_positions)
-
-    @torch.no_grad()
-    def _kept_candidates(self, candidate_ids: Tensor, density: Tensor, deltas: Tensor) -> Tensor:
-        """[C] bool over the occupied samples ``candidate_ids`` (flat indices into [R*S]) with ``density``
-        [C]: True where the transmittance before the sample is above the threshold and (once the grid
-        prunes) its opacity above ``alpha_threshold``."""
-        num_rays, num_samples = deltas.shape
-        densities = torch.zeros(num_rays * num_samples, device=deltas.device)
-        densities[candidate_ids] = density.float()
-        alphas = alphas_from_densities(densities.reshape(num_rays, num_samples), deltas)
-        _, transmittance = weights_from_alphas(alphas)
-        keep = transmittance.reshape(-1)[candidate_ids] > self.config.transmittance_threshold
-        if self._skips_transparent_samples():
-            keep &= alphas.reshape(-1)[candidate_ids] > self.config.alpha_threshold
-        return keep
+    def visibility(self) -> VisibilitySampler:
+        """The sampler that picks the samples the field evaluates now (:mod:`~scalar_nerfstudio.model_components.visibility`):
+        :meth:`samples_grid`, this model's field, and the config's thresholds as they are now."""
+        return VisibilitySampler(
+            grid=self.samples_grid(), field=self.field, transmittance_threshold=self.config.transmittance_threshold,
+            alpha_threshold=self.config.alpha_threshold, grid_alpha_skip=self.config.grid_alpha_skip,
+        )
 
     def _background(self, num_rays: int, like: Tensor) -> Tensor:
         """[R, 3] background colour: random while training (if configured), grey otherwise."""

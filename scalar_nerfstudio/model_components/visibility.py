@@ -1,0 +1,165 @@
+"""Which samples along a batch of rays the field evaluates: the visibility sampler.
+
+Given the samples' contracted unit-cube positions ``[R*S, 3]`` and their interval lengths ``[R, S]``,
+:class:`VisibilitySampler` keeps the samples that
+
+1. lie in occupied cells of the occupancy grid and, once the grid prunes, that the grid's density
+   estimates make opaque enough (``grid_alpha_skip``, :meth:`OccupancyGrid.worth_evaluating`);
+2. are not occluded: the transmittance in front of them, from a no-grad density pass, is above
+   ``transmittance_threshold``;
+3. once the grid prunes, are themselves more opaque than ``alpha_threshold`` in that pass.
+
+The field runs with gradients (training) or for colour (rendering) only on the kept samples.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import List, Optional, Protocol, Tuple
+
+import torch
+from torch import Tensor
+
+from scalar_nerfstudio.model_components.rendering import alphas_from_densities, weights_from_alphas
+from scalar_nerfstudio.model_components.sampling import OccupancyGrid
+
+#: Samples per chunk of a no-grad density pass.
+DENSITY_CHUNK = 1 << 16
+#: Front-to-back segments of the samples at render time (rays that turned opaque stop being evaluated).
+RENDER_SEGMENTS = 4
+
+
+class DensityField(Protocol):
+    """What the sampler needs of a field: its hash-grid encoder and its density head."""
+
+    def encoder(self, unit_positions: Tensor) -> Tensor:
+        """[M, 3] unit-cube positions -> [M, L*F] encoding."""
+
+    def density_at_unit(self, unit_positions: Tensor, encoding: Optional[Tensor] = None) -> Tuple[Tensor, Tensor]:
+        """[M, 3] unit-cube positions (and their encoding, if known) -> ([M] density, [M, F] geometry features)."""
+
+
+@dataclass(frozen=True, eq=False)
+class VisibilitySampler:
+    """The samples of a ray batch a field evaluates (see the module docstring).
+
+    Built per render by the model that owns ``grid`` and ``field``, from its config's thresholds.
+    """
+
+    grid: OccupancyGrid
+    """The occupancy grid that decides which cells are empty (training or render grid)."""
+    field: DensityField
+    """The field whose density decides occlusion."""
+    transmittance_threshold: float
+    """Samples behind the point where a ray's transmittance drops below this are dropped (<= 0: none)."""
+    alpha_threshold: float
+    """Once the grid prunes, samples more transparent than this are dropped (0: none)."""
+    grid_alpha_skip: bool
+    """Once the grid prunes, drop samples its density estimates make more transparent than ``alpha_threshold``."""
+
+    def skips_transparent(self) -> bool:
+        """Whether samples more transparent than ``alpha_threshold`` are dropped now: once the
+        occupancy grid marks cells empty (after its warm-up), unless the threshold is 0, and not
+        while the field settles into a grid seeded from another model's (:attr:`OccupancyGrid.settling`)."""
+        return self.alpha_threshold > 0 and self.grid.pruning and not self.grid.settling
+
+    @torch.no_grad()
+    def worth_evaluating(self, unit_positions: Tensor, deltas: Tensor) -> Tensor:
+        """[R*S] bool: the samples (unit-cube positions [R*S, 3], world interval lengths [R*S]) the
+        field evaluates: those in occupied cells and, once the grid prunes (as for the rendered
+        samples' ``alpha_threshold``), only those the grid's estimates make opaque enough
+        (``grid_alpha_skip``)."""
+        if self.grid_alpha_skip and self.skips_transparent():
+            return self.grid.worth_evaluating(unit_positions, deltas, self.alpha_threshold)
+        return self.grid.is_occupied(unit_positions)
+
+    @torch.no_grad()
+    def visible(self, unit_positions: Tensor, deltas: Tensor) -> Tuple[Tensor, Optional[Tensor]]:
+        """The samples that are in occupied cells and not occluded: ([M] flat indices into the [R*S]
+        samples, [M, L*F] their hash-grid encoding from the no-grad pass, or None when there was no
+        such pass), so that the pass with gradients does not encode them again.
+
+        Args:
+            unit_positions: [R*S, 3] contracted unit-cube positions of the samples.
+            deltas: [R, S] world interval lengths.
+        """
+        if self.transmittance_threshold <= 0:
+            return torch.nonzero(self.grid.is_occupied(unit_positions)).squeeze(-1), None
+        candidate_ids = torch.nonzero(self.worth_evaluating(unit_positions, deltas.reshape(-1))).squeeze(-1)
+        if candidate_ids.numel() == 0:
+            return candidate_ids, None
+        candidates = unit_positions[candidate_ids]
+        densities: List[Tensor] = []
+        encodings: List[Tensor] = []
+        for chunk in torch.split(candidates, DENSITY_CHUNK):
+            encodings.append(self.field.encoder(chunk))
+            densities.append(self.field.density_at_unit(chunk, encoding=encodings[-1])[0].float())
+        keep = self.kept_candidates(candidate_ids, torch.cat(densities), deltas)
+        kept_encoding = torch.cat([encoding[chunk_keep] for encoding, chunk_keep in zip(encodings, torch.split(keep, DENSITY_CHUNK))])
+        return candidate_ids[keep], kept_encoding
+
+    @torch.no_grad()
+    def visible_with_features(self, unit_positions: Tensor, deltas: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
+        """:meth:`visible` without gradients, keeping what the field computed on the way:
+        ([M] flat sample indices, [M] density, [M, F] geometry features).
+
+        The samples are taken front to back in :data:`RENDER_SEGMENTS` segments along the rays: a
+        segment evaluates only the rays whose transmittance is still above the threshold, so the
+        occupied samples behind a surface are never evaluated (the kept samples and their values are
+        those of one pass over every occupied sample)."""
+        num_rays, num_samples = deltas.shape
+        threshold = self.transmittance_threshold
+        if threshold <= 0 or num_rays == 0:
+            candidate_ids = torch.nonzero(self.grid.is_occupied(unit_positions)).squeeze(-1)
+            density, geo = self.field.density_at_unit(unit_positions[candidate_ids])
+            return candidate_ids, density, geo
+        occupied = self.worth_evaluating(unit_positions, deltas.reshape(-1)).reshape(num_rays, num_samples)
+        log_threshold = math.log(threshold)
+        depth_before = deltas.new_zeros(num_rays)  # [R] optical depth in front of the segment
+        kept_ids: List[Tensor] = []
+        kept_density: List[Tensor] = []
+        kept_geo: List[Tensor] = []
+        bounds = torch.linspace(0, num_samples, min(RENDER_SEGMENTS, num_samples) + 1).round().long().tolist()
+        for start, end in zip(bounds[:-1], bounds[1:]):
+            alive = -depth_before > log_threshold  # [R] light still reaches the segment
+            rays, offsets = torch.nonzero(occupied[:, start:end] & alive[:, None], as_tuple=True)
+            if rays.numel() == 0:
+                if not bool(alive.any()):
+                    break
+                continue
+            ids = rays * num_samples + start + offsets
+            density, geo = self.field.density_at_unit(unit_positions[ids])
+            densities = deltas.new_zeros(num_rays, end - start)
+            densities[rays, offsets] = density.float()
+            alphas = alphas_from_densities(densities, deltas[:, start:end])
+            optical = -torch.log1p(-alphas.clamp(0.0, 1.0 - 1e-7))
+            accumulated = torch.cumsum(optical, dim=-1) + depth_before[:, None]
+            before = torch.cat([depth_before[:, None], accumulated[:, :-1]], dim=-1)  # [R, seg] in front of each sample
+            keep = torch.exp(-before[rays, offsets]) > threshold
+            if self.skips_transparent():
+                keep &= alphas[rays, offsets] > self.alpha_threshold
+            kept_ids.append(ids[keep])
+            kept_density.append(density[keep])
+            kept_geo.append(geo[keep])
+            depth_before = accumulated[:, -1]
+        if not kept_ids:
+            empty = unit_positions[:0]
+            density, geo = self.field.density_at_unit(empty)
+            return torch.zeros(0, dtype=torch.long, device=unit_positions.device), density, geo
+        return torch.cat(kept_ids), torch.cat(kept_density), torch.cat(kept_geo)
+
+    @torch.no_grad()
+    def kept_candidates(self, candidate_ids: Tensor, density: Tensor, deltas: Tensor) -> Tensor:
+        """[C] bool over the occupied samples ``candidate_ids`` (flat indices into [R*S]) with ``density``
+        [C]: True where the transmittance before the sample is above the threshold and (once the grid
+        prunes) its opacity above ``alpha_threshold``."""
+        num_rays, num_samples = deltas.shape
+        densities = torch.zeros(num_rays * num_samples, device=deltas.device)
+        densities[candidate_ids] = density.float()
+        alphas = alphas_from_densities(densities.reshape(num_rays, num_samples), deltas)
+        _, transmittance = weights_from_alphas(alphas)
+        keep = transmittance.reshape(-1)[candidate_ids] > self.transmittance_threshold
+        if self.skips_transparent():
+            keep &= alphas.reshape(-1)[candidate_ids] > self.alpha_threshold
+        return keep
