@@ -70,11 +70,12 @@ NORMALS_MIN_WEIGHT = 1e-4
 def near_far_collider(config: "ScalarModelConfig") -> BoundedNearFarCollider:
     """Rays from ``config.near_plane`` to ``config.far_plane``, inside the sphere of
     ``config.scene_radius`` when there is one; outside training the near plane is kept, unless
-    ``config.reset_near_plane`` (nerfstudio's default) starts rays at the camera. A config.yml written
-    before ``scene_radius`` existed has none: unbounded, as it was trained."""
+    ``config.reset_near_plane`` (nerfstudio's default) starts rays at the camera (an older run's
+    config.yml gets ``scene_radius = None``, unbounded as it was trained, from :mod:`scalar_nerfstudio.runs`'
+    migration)."""
     return BoundedNearFarCollider(
         near_plane=config.near_plane, far_plane=config.far_plane, reset_near_plane=config.reset_near_plane,
-        scene_radius=getattr(config, "scene_radius", None),
+        scene_radius=config.scene_radius,
     )
 
 
