@@ -248,7 +248,7 @@ def test_scene_files_images_downscales_and_sparse_points(processed, capture) -> 
 @needs_pycolmap
 def test_rerun_resumes_and_without_gps_the_frame_is_colmaps_turned_up(processed, capture, tmp_path) -> None:
     """A second run over a finished workspace skips SfM; the same photos without GPS get COLMAP's
-    frame, centred on the cameras and with +z along their mean up direction."""
+    scale, centred on the cameras and turned so their level (image rows) is horizontal."""
     photos = tmp_path / "photos"
     photos.mkdir()
     for path in sorted(capture[0].iterdir()):
@@ -262,14 +262,12 @@ def test_rerun_resumes_and_without_gps_the_frame_is_colmaps_turned_up(processed,
     assert code == 0, out + err
     assert time.monotonic() - start < 10.0 and "done earlier" in err, err
     transforms = json.loads((scene / "transforms.json").read_text())
-    assert transforms["capture_frame"]["kind"] == "up" and "COLMAP's units" in out
+    assert transforms["capture_frame"]["kind"] == "up" and "COLMAP's units" in out and "level image rows" in out, out
     poses = _scene_poses(scene)
-    c2w = np.stack(list(poses.values()))
-    assert np.allclose(c2w[:, :3, 3].mean(axis=0), 0.0, atol=1e-6)
-    mean_up = c2w[:, :3, 1].mean(axis=0)  # OpenGL +y is the camera's up
-    assert np.allclose(mean_up / np.linalg.norm(mean_up), [0.0, 0.0, 1.0], atol=1e-6)
-    _, rotation_error, position_error, size = _pose_errors(poses, capture[1])
-    assert rotation_error.max() < 1.0 and position_error.max() < 0.01 * size
+    assert np.allclose(np.stack(list(poses.values()))[:, :3, 3].mean(axis=0), 0.0, atol=1e-6)
+    sim, rotation_error, position_error, size = _pose_errors(poses, capture[1])
+    tilt = float(np.degrees(np.arccos(np.clip(sim.rotation[2, 2], -1.0, 1.0))))  # scene z vs world z
+    assert rotation_error.max() < 0.5 and position_error.max() < 0.005 * size and tilt < 0.5, f"tilt {tilt:.2f} deg"
 
 
 @needs_pycolmap
@@ -417,19 +415,48 @@ def test_umeyama_recovers_a_similarity_and_drops_a_jumped_fix() -> None:
         geo.umeyama(np.outer(np.arange(5.0), [1.0, 2.0, 3.0]), np.outer(np.arange(5.0), [1.0, 0.0, 0.0]))
 
 
-def test_capture_frame_without_complete_gps_turns_the_mean_up_to_z() -> None:
-    rng = np.random.default_rng(0)
-    tilt = _random_similarity(4).rotation
-    poses = np.stack([np.eye(4)] * 5)
-    for k in range(5):
-        poses[k, :3, :3] = tilt @ look_at(np.zeros(3), np.array([np.cos(k), np.sin(k), -0.2]))[:3, :3] @ np.diag([1.0, -1.0, -1.0])  # OpenCV axes
-        poses[k, :3, 3] = rng.normal(size=3)
-    names = [f"{k}.jpg" for k in range(5)]
-    frame = capture_frame(names, poses, {"0.jpg": GPS_ORIGIN})
-    assert frame.kind == "up" and "1.jpg" in frame.note
-    moved = frame.scene_from_colmap.apply_to_poses(poses)
-    up = -moved[:, :3, 1].mean(axis=0)
-    assert np.allclose(up / np.linalg.norm(up), [0.0, 0.0, 1.0]) and np.allclose(moved[:, :3, 3].mean(axis=0), 0.0)
+def _level_cameras(count: int = 12, seed: int = 0) -> np.ndarray:
+    """[N, 4, 4] OpenCV poses of cameras with level image rows (a drone's nadir and oblique views)
+    over a 100 m x 60 m area, in the world (z up)."""
+    rng = np.random.default_rng(seed)
+    poses = np.stack([np.eye(4)] * count)
+    for k in range(count):
+        position = np.array([rng.uniform(-50, 50), rng.uniform(-30, 30), rng.uniform(48, 52)])
+        heading = rng.uniform(-np.pi, np.pi)
+        target = position + np.array([0.3 * np.cos(heading), 0.3 * np.sin(heading), -1.0])
+        poses[k] = look_at(position, target) @ np.diag([1.0, -1.0, -1.0, 1.0])  # OpenGL -> OpenCV axes
+    return poses
+
+
+def test_capture_frame_without_complete_gps_levels_the_cameras() -> None:
+    world = _level_cameras()
+    tilt = _random_similarity(4)
+    colmap = geo.Similarity(0.37, tilt.rotation, tilt.translation).apply_to_poses(world)
+    names = [f"{k}.jpg" for k in range(len(world))]
+    frame = capture_frame(names, colmap, {"0.jpg": GPS_ORIGIN})
+    assert frame.kind == "up" and "1.jpg" in frame.note and "level" in frame.note
+    moved = frame.scene_from_colmap.apply_to_poses(colmap)
+    assert np.allclose(moved[:, :3, 3].mean(axis=0), 0.0, atol=1e-9)
+    assert np.allclose(moved[:, 2, 0], 0.0, atol=1e-9) and np.all(moved[:, 2, 2] < -0.9)  # rows level, looking down
+
+
+def test_gps_altitude_drift_leaves_up_to_the_cameras_level() -> None:
+    """GPS whose altitude drifts 100 m over the flight (as a consumer camera's does) but whose
+    horizontal position is right to 2 m: the frame stays level, in metres, north up."""
+    world = _level_cameras(count=30, seed=1)
+    rng = np.random.default_rng(2)
+    enu = world[:, :3, 3] + np.c_[rng.normal(0.0, 2.0, (30, 2)), np.linspace(-50.0, 50.0, 30)]
+    gps = dict(zip([f"{k}.jpg" for k in range(30)], geo.enu_to_wgs84(enu, GPS_ORIGIN)))
+    tilt = _random_similarity(5)
+    colmap = geo.Similarity(0.37, tilt.rotation, tilt.translation).apply_to_poses(world)
+    frame = capture_frame(list(gps), colmap, gps)
+    assert frame.kind == "enu-level" and "disagree" in frame.note, frame.describe()
+    moved = frame.scene_from_colmap.apply_to_poses(colmap)
+    origin_offset = geo.wgs84_to_enu(GPS_ORIGIN[None], frame.gps_origin)[0]
+    assert np.allclose(moved[:, 2, 0], 0.0, atol=1e-9)  # level
+    sim = geo.umeyama(moved[:, :3, 3], world[:, :3, 3])
+    assert abs(sim.scale - 1.0) < 0.02 and geo.rotation_angle_deg(sim.rotation[None], np.eye(3)[None])[0] < 1.0
+    assert np.allclose(sim.translation[:2], -origin_offset[:2], atol=2.0)
 
 
 def _dataparser_transform(seed: int) -> DataparserTransform:
@@ -503,9 +530,11 @@ def exported_points_against_sparse(scene: Path, run: Path, export_dir: Path) -> 
     process-data scene) and, mapped with scalar-nerf-export-frame, the same export in the model
     frame: both against the scene's sparse SfM points, in the capture's frame.
 
-    Returns the median distance (capture units) from each exported point to its nearest sparse
-    point for each route, the sparse points' own median nearest-neighbour spacing, and the distance
-    between the exported and sparse centroids relative to the sparse points' extent.
+    Returns, in the capture's units: the median distance from each exported point to its nearest
+    sparse point for each route (``world_median``, ``mapped_median``), the sparse points' own median
+    nearest-neighbour spacing, the distance between each route's centroid and the sparse points'
+    (``*_centroid_offset``) and between the two routes' centroids (``routes_centroid_offset``), all
+    offsets relative to the sparse points' ``extent`` (the diagonal of their bounding box).
     """
     import open3d as o3d
 
@@ -536,6 +565,7 @@ def exported_points_against_sparse(scene: Path, run: Path, export_dir: Path) -> 
         "sparse_spacing": float(np.median(spacing)),
         "world_centroid_offset": float(np.linalg.norm(world.mean(axis=0) - sparse.mean(axis=0)) / extent),
         "mapped_centroid_offset": float(np.linalg.norm(mapped.mean(axis=0) - sparse.mean(axis=0)) / extent),
+        "routes_centroid_offset": float(np.linalg.norm(mapped.mean(axis=0) - world.mean(axis=0)) / extent),
         "extent": extent,
     }
 
@@ -543,9 +573,11 @@ def exported_points_against_sparse(scene: Path, run: Path, export_dir: Path) -> 
 @pytest.mark.slow
 @needs_pycolmap
 def test_ns_export_in_the_capture_frame_lies_on_the_sparse_points(processed, tmp_path) -> None:
-    """A tiny scalar-nerf run (conftest's TINY: 40 global steps, 2 blocks of 15) on the processed capture, exported with ``--save-world-frame True``
-    and through scalar-nerf-export-frame: both clouds lie in the capture's frame, on the sparse points.
-    (A short run's density is still hazy: the bound is loose, the frame check is the centroid.)"""
+    """A tiny scalar-nerf run (conftest's TINY: 40 global steps, 2 blocks of 15) on the processed
+    capture, exported with ``--save-world-frame True`` and through scalar-nerf-export-frame: the two
+    routes agree and both clouds lie in the capture's frame, around the sparse points. A run this
+    short is still hazy, so the bounds against the sparse points are loose (not measured yet: the
+    helper that wrote this test could not train); the route agreement is the frame check."""
     from conftest import TINY, ns_train_command, run_dirs
 
     scene = processed[0]
@@ -554,6 +586,7 @@ def test_ns_export_in_the_capture_frame_lies_on_the_sparse_points(processed, tmp
     (run,) = run_dirs(tmp_path / "outputs")
     figures = exported_points_against_sparse(scene, run, tmp_path / "export")
     summary = ", ".join(f"{k} {v:.3f}" for k, v in figures.items())
-    assert figures["world_centroid_offset"] < 0.15 and figures["mapped_centroid_offset"] < 0.15, summary
-    assert figures["world_median"] < 0.05 * figures["extent"] and figures["mapped_median"] < 0.05 * figures["extent"], summary
+    assert figures["routes_centroid_offset"] < 0.05, summary
+    assert figures["world_centroid_offset"] < 0.25 and figures["mapped_centroid_offset"] < 0.25, summary
+    assert figures["world_median"] < 0.1 * figures["extent"] and figures["mapped_median"] < 0.1 * figures["extent"], summary
     print(summary)

@@ -121,16 +121,18 @@ def mean_origin(lat_lon_alt: np.ndarray) -> np.ndarray:
 
 
 def umeyama(source: np.ndarray, target: np.ndarray, with_scale: bool = True) -> Similarity:
-    """Least-squares similarity that maps [N, 3] ``source`` onto [N, 3] ``target`` (Umeyama 1991).
+    """Least-squares similarity that maps [N, D] ``source`` onto [N, D] ``target`` (Umeyama 1991;
+    D = 3, or 2 for a fit in the horizontal plane: then the rotation is [2, 2]).
 
     Raises:
         ValueError: for fewer than 3 points or points that do not span a plane (collinear or
             coincident: the rotation about their line is then undetermined).
     """
-    src = np.asarray(source, dtype=np.float64).reshape(-1, 3)
-    dst = np.asarray(target, dtype=np.float64).reshape(-1, 3)
-    if len(src) != len(dst) or len(src) < 3:
-        raise ValueError(f"a similarity needs at least 3 point pairs, got {len(src)} and {len(dst)}")
+    src = np.asarray(source, dtype=np.float64)
+    dst = np.asarray(target, dtype=np.float64)
+    if src.ndim != 2 or src.shape != dst.shape or src.shape[1] not in (2, 3) or len(src) < 3:
+        raise ValueError(f"a similarity needs at least 3 point pairs of 2 or 3 coordinates, got {src.shape} and {dst.shape}")
+    dim = src.shape[1]
     mu_src, mu_dst = src.mean(axis=0), dst.mean(axis=0)
     src_c, dst_c = src - mu_src, dst - mu_dst
     for name, points in (("source", src_c), ("target", dst_c)):
@@ -139,9 +141,9 @@ def umeyama(source: np.ndarray, target: np.ndarray, with_scale: bool = True) -> 
             raise ValueError(f"the {name} points are collinear or coincident (singular values {spread.round(6).tolist()})")
     covariance = dst_c.T @ src_c / len(src)
     u, d, vt = np.linalg.svd(covariance)
-    sign = np.eye(3)
+    sign = np.eye(dim)
     if np.linalg.det(u) * np.linalg.det(vt) < 0:
-        sign[2, 2] = -1.0
+        sign[-1, -1] = -1.0
     rotation = u @ sign @ vt
     scale = float(np.trace(np.diag(d) @ sign) / (src_c**2).sum(axis=1).mean()) if with_scale else 1.0
     translation = mu_dst - scale * rotation @ mu_src
@@ -155,8 +157,8 @@ def robust_umeyama(source: np.ndarray, target: np.ndarray, rounds: int = 3, fact
     Returns:
         The similarity and the [N] bool mask of the pairs the last fit used.
     """
-    src = np.asarray(source, dtype=np.float64).reshape(-1, 3)
-    dst = np.asarray(target, dtype=np.float64).reshape(-1, 3)
+    src = np.asarray(source, dtype=np.float64)
+    dst = np.asarray(target, dtype=np.float64)
     keep = np.ones(len(src), dtype=bool)
     sim = umeyama(src, dst)
     for _ in range(rounds):
@@ -183,18 +185,47 @@ def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.eye(3) + vx + vx @ vx / (1.0 + c)
 
 
-def up_alignment(camera_to_world_cv: np.ndarray) -> Similarity:
-    """The rigid transform (scale 1) that moves the cameras' centroid to the origin and turns their
-    mean up direction (-y of OpenCV cameras) to +z: the frame of a capture without GPS.
+#: The image rows fix "up" when the cameras' x axes span a plane: the smallest eigenvalue of their
+#: scatter is below this fraction of the middle one.
+LEVEL_RATIO = 0.1
+
+
+def camera_up(camera_to_world_cv: np.ndarray) -> Tuple[np.ndarray, str]:
+    """[3] the up direction the cameras suggest, and how it was found.
+
+    ``level``: photos are taken with level image rows (no roll), by hand or from a drone, so up is
+    the direction most nearly perpendicular to every camera's x axis (the smallest eigenvector of
+    their scatter; it needs x axes of several headings). Its sign makes the cameras' image-up (-y)
+    point up and their viewing directions (+z) point down, on the whole. ``mean up``: with x axes of
+    about one heading (a straight drive), the cameras' mean image-up direction.
 
     Args:
         camera_to_world_cv: [N, 4, 4] poses with OpenCV camera axes.
     """
     poses = np.asarray(camera_to_world_cv, dtype=np.float64)
-    up = -poses[:, :3, 1].mean(axis=0)
-    rotation = rotation_between(up, np.array([0.0, 0.0, 1.0])) if np.linalg.norm(up) > 1e-9 else np.eye(3)
+    x_axes, image_up, view = poses[:, :3, 0], -poses[:, :3, 1], poses[:, :3, 2]
+    values, vectors = np.linalg.eigh(x_axes.T @ x_axes / len(poses))
+    if values[0] < LEVEL_RATIO * values[1]:
+        up = vectors[:, 0]
+        if (image_up @ up).sum() - (view @ up).sum() < 0:
+            up = -up
+        return up, "level"
+    up = image_up.mean(axis=0)
+    return (up / np.linalg.norm(up) if np.linalg.norm(up) > 1e-9 else np.array([0.0, 0.0, 1.0])), "mean up"
+
+
+def up_alignment(camera_to_world_cv: np.ndarray) -> Tuple[Similarity, str]:
+    """The rigid transform (scale 1) that moves the cameras' centroid to the origin and turns
+    :func:`camera_up` to +z (the frame of a capture without GPS), and how up was found.
+
+    Args:
+        camera_to_world_cv: [N, 4, 4] poses with OpenCV camera axes.
+    """
+    poses = np.asarray(camera_to_world_cv, dtype=np.float64)
+    up, how = camera_up(poses)
+    rotation = rotation_between(up, np.array([0.0, 0.0, 1.0]))
     centre = poses[:, :3, 3].mean(axis=0)
-    return Similarity(1.0, rotation, -(rotation @ centre))
+    return Similarity(1.0, rotation, -(rotation @ centre)), how
 
 
 def rotation_angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -83,6 +83,11 @@ def _progress(console: Console) -> Iterator[Progress]:
         yield progress
 
 
+def _done(progress: Progress, description: str) -> None:
+    """A finished stage's line (no clock running)."""
+    progress.update(progress.add_task(description, total=1), completed=1)
+
+
 def _stage(progress: Progress, description: str, total: Optional[int]):
     task = progress.add_task(description, total=total)
     return task, (lambda n=1: progress.advance(task, n)), (lambda: progress.refresh())
@@ -92,14 +97,16 @@ def run(args: argparse.Namespace, err: Console) -> int:
     """The stages (progress bars on ``err``, the summary on stdout); raises ProcessDataError for bad input."""
     started = time.monotonic()
     workers = (os.cpu_count() or 1) if args.threads < 1 else args.threads
+    if not args.images.is_dir():
+        raise ProcessDataError(f"{args.images}: no such folder of photos")
     scene.check_output(args.output, args.images)
     options = sfm.SfmOptions(
         max_image_size=args.max_image_size, matching=args.matching, spatial_neighbors=args.spatial_neighbors,
         sequential_overlap=args.sequential_overlap, num_threads=args.threads,
     )
+    timings = {}
     with _progress(err) as progress:
-        count = len(list_photos(args.images)) if args.images.is_dir() else 0
-        _, advance, _ = _stage(progress, "checking photos", count or None)
+        _, advance, _ = _stage(progress, "checking photos", len(list_photos(args.images)) or None)
         photos = inspect_photos(args.images, progress=advance, workers=workers)
         matching = sfm.resolve_matching(args.matching, photos)
         if args.overwrite:
@@ -108,30 +115,36 @@ def run(args: argparse.Namespace, err: Console) -> int:
         sfm.quiet_colmap()
 
         if stages["extracted"]:
-            progress.add_task("features: done earlier", total=1, completed=1)
+            _done(progress, "features: done earlier")
         else:
             _, advance, _ = _stage(progress, f"features (SIFT, long side {args.max_image_size} px)", len(photos.names))
+            clock = time.monotonic()
             sfm.extract_features(workspace, photos, options, advance)
+            timings["features"] = time.monotonic() - clock
             stages["extracted"] = True
             workspace.write_stages(stages)
 
         if matching in stages["matched"]:
-            progress.add_task(f"matching ({matching}): done earlier", total=1, completed=1)
+            _done(progress, f"matching ({matching}): done earlier")
         else:
             pairs = sfm.count_pairs(workspace, matching, options)
             task, _, tick = _stage(progress, f"matching {pairs} pairs ({matching})", None)
+            clock = time.monotonic()
             sfm.match_features(workspace, matching, options, tick)
+            timings["matching"] = time.monotonic() - clock
             progress.update(task, total=1, completed=1)
             stages["matched"] = [*stages["matched"], matching]
             stages["mapped"] = False  # new matches: map again
             workspace.write_stages(stages)
 
         if stages["mapped"] and workspace.sparse.is_dir():
-            progress.add_task("mapping: done earlier", total=1, completed=1)
+            _done(progress, "mapping: done earlier")
             reconstruction = sfm.load_model(workspace)
         else:
             _, advance, tick = _stage(progress, "mapping (photos registered)", len(photos.names))
+            clock = time.monotonic()
             reconstruction = sfm.map_photos(workspace, photos, options, on_image=advance, tick=tick)
+            timings["mapping"] = time.monotonic() - clock
             stages["mapped"] = True
             workspace.write_stages(stages)
 
@@ -139,15 +152,17 @@ def run(args: argparse.Namespace, err: Console) -> int:
         gps = photos.gps_by_name()
         frame = align.capture_frame(model.names, model.camera_to_world, gps, list(gps.values()) or None)
         _, advance, _ = _stage(progress, "writing the scene", len(model.names))
+        clock = time.monotonic()
         transforms = scene.write_scene(
             args.output, photos.folder, model.names, model.camera_to_world, model.image_ids, model.intrinsics,
             model.points, model.colours, frame, workers=workers, advance=advance,
         )
-    _report(photos.names, model, frame, sfm.other_models(workspace), transforms, time.monotonic() - started)
+        timings["writing"] = time.monotonic() - clock
+    _report(photos.names, model, frame, sfm.other_models(workspace), transforms, time.monotonic() - started, timings)
     return 0
 
 
-def _report(all_names: List[str], model, frame: align.CaptureFrame, others: List[int], transforms: Path, seconds: float) -> None:
+def _report(all_names: List[str], model, frame: align.CaptureFrame, others: List[int], transforms: Path, seconds: float, timings: dict) -> None:
     registered = set(model.names)
     missing = [name for name in all_names if name not in registered]
     share = 100.0 * len(registered) / len(all_names)
@@ -158,7 +173,7 @@ def _report(all_names: List[str], model, frame: align.CaptureFrame, others: List
         print(f"could not place {len(missing)} photo(s): {', '.join(missing)}")
     if others:
         print(f"({len(others)} smaller separate reconstruction(s) of {', '.join(map(str, others))} photos were left out)")
-    print(f"wrote {transforms}")
+    print(f"wrote {transforms} (" + ", ".join(f"{name} {value:.0f} s" for name, value in timings.items()) + ")")
 
 
 def main(argv: Optional[List[str]] = None) -> int:
