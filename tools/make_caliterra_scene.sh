@@ -10,9 +10,10 @@
 #   SCENE  the scene folder to write (keep it outside this repository: photos are never committed).
 # The photos are extracted to SCENE.photos/ (SCENE/images/ hard-links them); photos whose git blobs
 # are missing from REPO (a partial copy) are skipped with a note. Run it again to resume.
+# Needs the project with its process extra: pip install -e ".[process]".
 set -euo pipefail
 if [ $# -lt 2 ]; then
-    sed -n '2,14p' "$0" | sed 's/^# \{0,1\}//'
+    sed -n '2,15p' "$0" | sed 's/^# \{0,1\}//'
     exit 2
 fi
 REPO=$1
