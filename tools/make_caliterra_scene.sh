@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Rebuild the Caliterra drone scene: OpenDroneMap's odm_data_caliterra (77 photos, 4000 x 3000, of a
-# Canon PowerShot SX260 HS with EXIF GPS, flown over a field and buildings) -> a nerfstudio scene with
+# Canon PowerShot SX260 HS with EXIF GPS, looking down on a construction site) -> a nerfstudio scene with
 # poses from scalar-nerf-process-data (pycolmap SfM on the CPU, spatial matching from GPS; metres,
 # east-north-up).
 #
