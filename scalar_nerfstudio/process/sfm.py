@@ -1,0 +1,330 @@
+"""Structure-from-motion with pycolmap on the CPU: features, matching, incremental mapping.
+
+The work lives in ``SCENE/colmap``: ``database.db`` (features and matches), ``sparse/0`` (the
+largest reconstruction, COLMAP binary) and ``stages.json`` (which stages finished, with the options
+they ran with). A re-run skips the finished stages and resumes an interrupted feature extraction
+where it stopped (COLMAP skips photos and pairs already in the database).
+
+This module imports pycolmap (the ``process`` extra); the rest of ``scalar_nerfstudio.process``
+does not.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Dict, List, NamedTuple, Optional
+
+import numpy as np
+import pycolmap
+
+from scalar_nerfstudio.atomic_io import atomic_write_text
+from scalar_nerfstudio.process.errors import ProcessDataError
+from scalar_nerfstudio.process.photos import PhotoSet
+
+STAGES_VERSION = 1
+MATCHING_METHODS = ("auto", "spatial", "sequential", "exhaustive")
+#: ``--matching auto`` matches every pair up to this many photos (without GPS).
+EXHAUSTIVE_MAX_PHOTOS = 50
+_CAMERA_MODEL = "OPENCV"  # fx, fy, cx, cy, k1, k2, p1, p2: what nerfstudio's OPENCV camera reads
+_EXTRACT_CHUNK = 8  # photos per extraction call (the progress bar's step)
+
+
+@dataclass(frozen=True)
+class SfmOptions:
+    """How structure-from-motion runs."""
+
+    max_image_size: int = 1000
+    """Features are found on the photo resized so its long side is at most this many pixels."""
+    matching: str = "auto"
+    """Which pairs are matched: auto, spatial (GPS neighbours), sequential (by file name) or exhaustive."""
+    spatial_neighbors: int = 20
+    """spatial: each photo is matched with this many nearest photos by GPS position."""
+    sequential_overlap: int = 10
+    """sequential: each photo is matched with this many next photos by file name."""
+    num_threads: int = -1
+    """CPU threads COLMAP uses (-1: all cores)."""
+    seed: int = 0
+    """Random seed of the mapper's RANSAC and initial pair choice."""
+
+
+class SparseModel(NamedTuple):
+    """A reconstruction as plain arrays (COLMAP's world frame; OpenCV camera axes)."""
+
+    names: List[str]
+    """[N] file names of the registered photos, sorted."""
+    camera_to_world: np.ndarray
+    """[N, 4, 4] poses of the registered photos (OpenCV axes: x right, y down, z forward)."""
+    image_ids: List[int]
+    """[N] COLMAP image ids."""
+    intrinsics: Dict[str, float]
+    """w, h, fl_x, fl_y, cx, cy, k1, k2, p1, p2 in full-resolution pixels."""
+    points: np.ndarray
+    """[P, 3] sparse points."""
+    colours: np.ndarray
+    """[P, 3] uint8 point colours."""
+    mean_reprojection_error: float
+    """Mean reprojection error of the points' observations, pixels."""
+
+
+def resolve_matching(method: str, photos: PhotoSet) -> str:
+    """``auto`` -> spatial when every photo has GPS, exhaustive up to :data:`EXHAUSTIVE_MAX_PHOTOS`
+    photos, else sequential. Raises :class:`ProcessDataError` for spatial without GPS."""
+    if method not in MATCHING_METHODS:
+        raise ProcessDataError(f"--matching {method!r}: choose one of {', '.join(MATCHING_METHODS)}")
+    if method == "spatial" and not photos.all_have_gps:
+        missing = photos.without_gps()
+        raise ProcessDataError(
+            f"--matching spatial pairs photos by their EXIF GPS positions, but {len(missing)} of {len(photos.photos)} "
+            f"photo(s) have none (e.g. {', '.join(missing[:3])}); use --matching exhaustive (up to ~{EXHAUSTIVE_MAX_PHOTOS} "
+            "photos) or sequential (photos taken in file-name order)"
+        )
+    if method != "auto":
+        return method
+    if photos.all_have_gps:
+        return "spatial"
+    return "exhaustive" if len(photos.photos) <= EXHAUSTIVE_MAX_PHOTOS else "sequential"
+
+
+class Workspace:
+    """``SCENE/colmap`` and its ``stages.json``."""
+
+    def __init__(self, colmap_dir: Path):
+        self.dir = Path(colmap_dir)
+        self.database = self.dir / "database.db"
+        self.sparse = self.dir / "sparse" / "0"
+        self.stages_path = self.dir / "stages.json"
+
+    def read_stages(self) -> Optional[dict]:
+        if not self.stages_path.exists():
+            return None
+        try:
+            return json.loads(self.stages_path.read_text())
+        except (OSError, ValueError) as error:
+            raise ProcessDataError(f"{self.stages_path}: unreadable ({error}); pass --overwrite to start over") from None
+
+    def write_stages(self, stages: dict) -> None:
+        atomic_write_text(self.stages_path, json.dumps(stages, indent=2) + "\n")
+
+
+def _signature(photos: PhotoSet, options: SfmOptions) -> dict:
+    return {"version": STAGES_VERSION, "photos": photos.names, "size": list(photos.size), "max_image_size": options.max_image_size, "camera_model": _CAMERA_MODEL}
+
+
+def open_workspace(colmap_dir: Path, photos: PhotoSet, options: SfmOptions) -> tuple:
+    """(Workspace, stages): a new workspace, or an existing one made for the same photos and options.
+
+    Raises:
+        ProcessDataError: the workspace holds another run's features.
+    """
+    workspace = Workspace(colmap_dir)
+    signature = _signature(photos, options)
+    stages = workspace.read_stages()
+    if stages is not None:
+        for key, value in signature.items():
+            if stages.get(key) != value:
+                what = {"photos": "another set of photos", "size": "photos of another size"}.get(key, f"{key} {stages.get(key)!r} (now {value!r})")
+                raise ProcessDataError(f"{workspace.dir} was made with {what}; pass --overwrite to start over")
+        return workspace, stages
+    workspace.dir.mkdir(parents=True, exist_ok=True)
+    stages = {**signature, "extracted": False, "matched": [], "mapped": False}
+    workspace.write_stages(stages)
+    return workspace, stages
+
+
+def _run_in_thread(function: Callable[[], object], tick: Optional[Callable[[], None]] = None) -> object:
+    """Run a long pycolmap call (it releases the GIL) while ``tick`` keeps a spinner alive."""
+    result: dict = {}
+
+    def target() -> None:
+        try:
+            result["value"] = function()
+        except BaseException as error:  # re-raised below, in the caller's thread
+            result["error"] = error
+
+    thread = threading.Thread(target=target, daemon=True)
+    thread.start()
+    while thread.is_alive():
+        thread.join(0.2)
+        if tick is not None:
+            tick()
+    if "error" in result:
+        raise result["error"]
+    return result.get("value")
+
+
+def extract_features(workspace: Workspace, photos: PhotoSet, options: SfmOptions, advance: Callable[[int], None]) -> None:
+    """SIFT on every photo not yet in the database, :data:`_EXTRACT_CHUNK` photos per call; one
+    camera (OPENCV, focal from EXIF when it has one) is shared by all photos."""
+    with pycolmap.Database.open(workspace.database) as database:
+        done = {image.name for image in database.read_all_images() if database.exists_keypoints(image.image_id)}
+        cameras = database.read_all_cameras()
+    todo = [name for name in photos.names if name not in done]
+    advance(len(photos.names) - len(todo))
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = _CAMERA_MODEL
+    if cameras:
+        reader.existing_camera_id = cameras[0].camera_id
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.max_image_size = options.max_image_size
+    extraction.num_threads = options.num_threads
+    for start in range(0, len(todo), _EXTRACT_CHUNK):
+        chunk = todo[start : start + _EXTRACT_CHUNK]
+        pycolmap.extract_features(
+            workspace.database, photos.folder, image_names=chunk, camera_mode=pycolmap.CameraMode.SINGLE,
+            reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu,
+        )
+        if reader.existing_camera_id < 0:
+            with pycolmap.Database.open(workspace.database) as database:
+                reader.existing_camera_id = database.read_all_cameras()[0].camera_id
+        advance(len(chunk))
+    with pycolmap.Database.open(workspace.database) as database:
+        images = {image.name: image.image_id for image in database.read_all_images()}
+        empty = [name for name in photos.names if name not in images or database.num_keypoints_for_image(images[name]) == 0]
+    if len(empty) == len(photos.names):
+        raise ProcessDataError(f"{photos.folder}: no features found in any photo (blank or unreadable images?)")
+
+
+def count_pairs(workspace: Workspace, matching: str, options: SfmOptions) -> int:
+    """How many photo pairs ``matching`` will match."""
+    with pycolmap.Database.open(workspace.database) as database:
+        return len({tuple(sorted(pair)) for pair in _pair_generator(matching, options, database).all_pairs()})
+
+
+def _pairing_options(matching: str, options: SfmOptions):
+    if matching == "spatial":
+        pairing = pycolmap.SpatialPairingOptions()
+        pairing.max_num_neighbors = options.spatial_neighbors
+        pairing.max_distance = 1e7  # metres: the neighbour count decides
+        return pairing
+    if matching == "sequential":
+        pairing = pycolmap.SequentialPairingOptions()
+        pairing.overlap = options.sequential_overlap
+        return pairing
+    return pycolmap.ExhaustivePairingOptions()
+
+
+def _pair_generator(matching: str, options: SfmOptions, database):
+    generator = {"spatial": pycolmap.SpatialPairGenerator, "sequential": pycolmap.SequentialPairGenerator, "exhaustive": pycolmap.ExhaustivePairGenerator}[matching]
+    return generator(_pairing_options(matching, options), database)
+
+
+def match_features(workspace: Workspace, matching: str, options: SfmOptions, tick: Optional[Callable[[], None]] = None) -> None:
+    """Match and geometrically verify the pairs of ``matching`` (pairs already matched are skipped)."""
+    matcher = pycolmap.FeatureMatchingOptions()
+    matcher.num_threads = options.num_threads
+    function = {"spatial": pycolmap.match_spatial, "sequential": pycolmap.match_sequential, "exhaustive": pycolmap.match_exhaustive}[matching]
+    _run_in_thread(
+        lambda: function(workspace.database, matching_options=matcher, pairing_options=_pairing_options(matching, options), device=pycolmap.Device.cpu),
+        tick,
+    )
+
+
+def verified_pairs(workspace: Workspace, min_inliers: int = 15) -> int:
+    """Photo pairs whose matches passed geometric verification with at least ``min_inliers``."""
+    with pycolmap.Database.open(workspace.database) as database:
+        _, geometries = database.read_two_view_geometries()
+    return sum(1 for geometry in geometries if len(geometry.inlier_matches) >= min_inliers)
+
+
+def map_photos(workspace: Workspace, photos: PhotoSet, options: SfmOptions, on_image: Callable[[int], None], tick: Optional[Callable[[], None]] = None) -> pycolmap.Reconstruction:
+    """Incremental mapping; the largest reconstruction is written to ``sparse/0``.
+
+    Raises:
+        ProcessDataError: no reconstruction (the photos do not overlap enough).
+    """
+    mapping = pycolmap.IncrementalPipelineOptions()
+    mapping.num_threads = options.num_threads
+    mapping.random_seed = options.seed
+    scratch = workspace.dir / "sparse.partial"
+    shutil.rmtree(scratch, ignore_errors=True)
+    scratch.mkdir(parents=True)
+    try:
+        models = _run_in_thread(
+            lambda: pycolmap.incremental_mapping(workspace.database, photos.folder, scratch, options=mapping, next_image_callback=on_image, initial_image_pair_callback=lambda: on_image(2)),
+            tick,
+        )
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+    if not models:
+        raise ProcessDataError(
+            f"{photos.folder}: structure-from-motion could not place any photos: no pair of photos shares enough matched "
+            f"features ({verified_pairs(workspace)} verified pair(s) with 15+ matches). The photos must overlap (about 60 % "
+            "between neighbours); try --matching exhaustive or a larger --max-image-size"
+        )
+    best = max(models.values(), key=lambda model: model.num_reg_images())
+    partial = workspace.sparse.with_name("0.partial")
+    shutil.rmtree(partial, ignore_errors=True)
+    partial.mkdir(parents=True)
+    best.write(partial)
+    shutil.rmtree(workspace.sparse, ignore_errors=True)
+    partial.rename(workspace.sparse)
+    others = sorted((model.num_reg_images() for model in models.values() if model is not best), reverse=True)
+    atomic_write_text(workspace.dir / "sparse" / "other_models.json", json.dumps(others) + "\n")
+    return best
+
+
+def load_model(workspace: Workspace) -> pycolmap.Reconstruction:
+    return pycolmap.Reconstruction(workspace.sparse)
+
+
+def to_sparse_model(reconstruction: pycolmap.Reconstruction) -> SparseModel:
+    """Plain arrays of a reconstruction (one camera)."""
+    cameras = list(reconstruction.cameras.values())
+    if len(cameras) != 1 or cameras[0].model_name != _CAMERA_MODEL:
+        raise ProcessDataError(f"expected one {_CAMERA_MODEL} camera in the reconstruction, got {[c.model_name for c in cameras]}")
+    camera = cameras[0]
+    fx, fy, cx, cy, k1, k2, p1, p2 = (float(v) for v in camera.params)
+    intrinsics = {"w": int(camera.width), "h": int(camera.height), "fl_x": fx, "fl_y": fy, "cx": cx, "cy": cy, "k1": k1, "k2": k2, "p1": p1, "p2": p2}
+    registered = sorted((image.name, image_id) for image_id, image in reconstruction.images.items() if image.has_pose)
+    poses = np.zeros((len(registered), 4, 4))
+    for k, (_, image_id) in enumerate(registered):
+        poses[k] = np.linalg.inv(np.vstack([reconstruction.images[image_id].cam_from_world().matrix(), [0.0, 0.0, 0.0, 1.0]]))
+    points = reconstruction.points3D
+    xyz = np.array([p.xyz for p in points.values()], dtype=np.float64).reshape(-1, 3)
+    rgb = np.array([p.color for p in points.values()], dtype=np.uint8).reshape(-1, 3)
+    return SparseModel(
+        names=[name for name, _ in registered],
+        camera_to_world=poses,
+        image_ids=[image_id for _, image_id in registered],
+        intrinsics=intrinsics,
+        points=xyz,
+        colours=rgb,
+        mean_reprojection_error=float(reconstruction.compute_mean_reprojection_error()),
+    )
+
+
+def other_models(workspace: Workspace) -> List[int]:
+    path = workspace.dir / "sparse" / "other_models.json"
+    try:
+        return [int(v) for v in json.loads(path.read_text())]
+    except (OSError, ValueError):
+        return []
+
+
+def quiet_colmap() -> None:
+    """Keep COLMAP's INFO log off the terminal (warnings and errors still show)."""
+    pycolmap.logging.minloglevel = 1
+
+
+__all__ = [
+    "EXHAUSTIVE_MAX_PHOTOS",
+    "MATCHING_METHODS",
+    "SfmOptions",
+    "SparseModel",
+    "Workspace",
+    "count_pairs",
+    "extract_features",
+    "load_model",
+    "map_photos",
+    "match_features",
+    "open_workspace",
+    "other_models",
+    "quiet_colmap",
+    "resolve_matching",
+    "to_sparse_model",
+    "verified_pairs",
+]

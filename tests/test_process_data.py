@@ -1,0 +1,592 @@
+"""``scalar-nerf-process-data`` (photos -> nerfstudio scene by pycolmap SfM) and ``scalar-nerf-export-frame``.
+
+The capture with known poses: the project's courtyard (its geometry, ray-cast by
+``synthetic_scene.render_rays``) seen by 24 cameras on a ring looking inwards, 320 x 240 JPEGs with
+EXIF focal length and GPS positions (exact: the world's metres as east-north-up about a reference
+point). The courtyard's own texture is replaced here by a 3-D value noise: the generator's checker
+flips on the round-off sign of hit points that lie on its cell edges (the ground z = 0 and box faces
+at multiples of 0.5 m), a speckle that differs between views, and SIFT then finds too few
+consistent features to place the cameras.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import importlib.util
+import io
+import json
+import math
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Dict, Tuple
+
+import numpy as np
+import pytest
+import torch
+from PIL import ExifTags, Image, TiffImagePlugin
+
+from scalar_nerfstudio.data.synthetic_scene import DEFAULT_BOXES, look_at, render_rays
+from scalar_nerfstudio.process import geo
+from scalar_nerfstudio.process.align import capture_frame
+from scalar_nerfstudio.process.errors import ProcessDataError
+from scalar_nerfstudio.process.export_frame import DataparserTransform, map_file, read_transform
+from scalar_nerfstudio.process.photos import read_photo
+from scalar_nerfstudio.scripts import export_frame as export_frame_cli
+from scalar_nerfstudio.scripts import process_data
+
+HAS_PYCOLMAP = importlib.util.find_spec("pycolmap") is not None
+needs_pycolmap = pytest.mark.skipif(not HAS_PYCOLMAP, reason="pycolmap is not installed (pip install 'scalar-nerfstudio[process]')")
+
+#: Where the courtyard's world origin lies on Earth (lat, lon in degrees, altitude in m).
+GPS_ORIGIN = np.array([46.5197, 6.6323, 372.0])
+NUM_VIEWS, WIDTH, HEIGHT = 24, 320, 240
+FOCAL_PX = 0.8 * WIDTH
+
+
+# ------------------------------------------------------------------------------------ the capture
+
+
+def _hash(ix: np.ndarray, iy: np.ndarray, iz: np.ndarray, salt: int) -> np.ndarray:
+    h = (ix * 73856093) ^ (iy * 19349663) ^ (iz * 83492791) ^ (salt * 2654435761)
+    h = (h ^ (h >> 13)) * 1274126177
+    return ((h ^ (h >> 16)) & 0xFFFF) / 65535.0
+
+
+def _value_noise(points: np.ndarray, cell: float, salt: int) -> np.ndarray:
+    """[P, 3] world points -> [P] smooth 3-D value noise in [0, 1] with cells of ``cell`` metres."""
+    scaled = points / cell
+    corner = np.floor(scaled).astype(np.int64)
+    f = scaled - corner
+    f = f * f * (3.0 - 2.0 * f)
+    out = np.zeros(len(points))
+    for dx in (0, 1):
+        for dy in (0, 1):
+            for dz in (0, 1):
+                weight = (f[:, 0] if dx else 1 - f[:, 0]) * (f[:, 1] if dy else 1 - f[:, 1]) * (f[:, 2] if dz else 1 - f[:, 2])
+                out += weight * _hash(corner[:, 0] + dx, corner[:, 1] + dy, corner[:, 2] + dz, salt)
+    return out
+
+
+def _dms(value: float) -> tuple:
+    value = abs(value)
+    degrees = int(value)
+    minutes = int((value - degrees) * 60.0)
+    seconds = (value - degrees - minutes / 60.0) * 3600.0
+    rational = TiffImagePlugin.IFDRational
+    return rational(degrees, 1), rational(minutes, 1), rational(int(round(seconds * 1e5)), 100000)
+
+
+def _exif(gps: np.ndarray = None) -> Image.Exif:
+    """EXIF of a test photo: make/model, 35-mm equivalent focal length (diagonal, as COLMAP reads it)
+    and, when given, GPS [3] lat, lon, alt."""
+    exif = Image.Exif()
+    exif[ExifTags.Base.Make], exif[ExifTags.Base.Model] = "scalar-nerf", "courtyard"
+    exif.get_ifd(ExifTags.IFD.Exif)[ExifTags.Base.FocalLengthIn35mmFilm] = int(round(FOCAL_PX * 43.27 / math.hypot(WIDTH, HEIGHT)))
+    if gps is not None:
+        tags = ExifTags.GPS
+        exif.get_ifd(ExifTags.IFD.GPSInfo).update({
+            tags.GPSVersionID: b"\x02\x03\x00\x00",
+            tags.GPSLatitudeRef: "N" if gps[0] >= 0 else "S", tags.GPSLatitude: _dms(gps[0]),
+            tags.GPSLongitudeRef: "E" if gps[1] >= 0 else "W", tags.GPSLongitude: _dms(gps[1]),
+            tags.GPSAltitudeRef: b"\x00" if gps[2] >= 0 else b"\x01", tags.GPSAltitude: TiffImagePlugin.IFDRational(int(round(abs(gps[2]) * 1000)), 1000),
+        })
+    return exif
+
+
+def render_capture(folder: Path, num_views: int = NUM_VIEWS, gps: bool = True) -> Dict[str, np.ndarray]:
+    """Write the ring capture's JPEGs into ``folder``; returns name -> [4, 4] true camera-to-world
+    (OpenGL axes, world metres: x east, y north, z up)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    u, v = np.meshgrid(np.arange(WIDTH) + 0.5, np.arange(HEIGHT) + 0.5)
+    camera_dirs = np.stack([(u - WIDTH / 2) / FOCAL_PX, -(v - HEIGHT / 2) / FOCAL_PX, -np.ones_like(u)], axis=-1).reshape(-1, 3)
+    camera_dirs /= np.linalg.norm(camera_dirs, axis=1, keepdims=True)
+    truth = {}
+    for i, angle in enumerate(np.linspace(0.0, 2.0 * np.pi, num_views, endpoint=False)):
+        position = np.array([4.5 * np.cos(angle), 4.5 * np.sin(angle), 1.8 + 0.4 * np.sin(3 * angle)])
+        c2w = look_at(position, np.array([0.3 * np.cos(5 * angle), 0.3 * np.sin(5 * angle), 0.6]))
+        directions = camera_dirs @ c2w[:3, :3].T
+        origins = np.broadcast_to(c2w[:3, 3], directions.shape)
+        rgb, depth = render_rays(origins, directions)
+        hit = np.isfinite(depth)
+        points = origins[hit] + directions[hit] * depth[hit, None]
+        grey = 0.25 + 0.35 * _value_noise(points, 0.6, 1) + 0.25 * _value_noise(points, 0.15, 2) + 0.15 * _value_noise(points, 0.05, 3)
+        rgb[hit] = grey[:, None] * np.array([1.0, 0.95, 0.85])
+        name = f"view_{i:03d}.jpg"
+        image = Image.fromarray((rgb.reshape(HEIGHT, WIDTH, 3) * 255.0 + 0.5).astype(np.uint8))
+        position_gps = geo.enu_to_wgs84(position[None], GPS_ORIGIN)[0] if gps else None
+        image.save(folder / name, quality=95, exif=_exif(position_gps))
+        truth[name] = c2w
+    return truth
+
+
+def _run(*args: str) -> Tuple[int, str, str]:
+    """scalar-nerf-process-data in this process: (exit code, stdout, stderr)."""
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = process_data.main([*args, "--threads", "2"])
+    return code, out.getvalue(), err.getvalue()
+
+
+def _scene_poses(scene: Path) -> Dict[str, np.ndarray]:
+    transforms = json.loads((scene / "transforms.json").read_text())
+    return {Path(f["file_path"]).name: np.array(f["transform_matrix"]) for f in transforms["frames"]}
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory) -> Tuple[Path, Dict[str, np.ndarray]]:
+    folder = tmp_path_factory.mktemp("capture") / "photos"
+    return folder, render_capture(folder)
+
+
+@pytest.fixture(scope="module")
+def processed(capture, tmp_path_factory) -> Tuple[Path, str, float]:
+    """(scene folder, stdout, seconds) of process-data on the capture (auto matching: spatial, GPS)."""
+    if not HAS_PYCOLMAP:
+        pytest.skip("pycolmap is not installed")
+    scene = tmp_path_factory.mktemp("processed") / "scene"
+    start = time.monotonic()
+    code, out, err = _run("--images", str(capture[0]), "--output", str(scene))
+    assert code == 0, out + err
+    return scene, out, time.monotonic() - start
+
+
+# ------------------------------------------------------------------------------ SfM on the capture
+
+
+def _pose_errors(recovered: Dict[str, np.ndarray], truth: Dict[str, np.ndarray]) -> Tuple[geo.Similarity, np.ndarray, np.ndarray, float]:
+    """Fit recovered -> true camera centres; (similarity, [N] rotation errors in degrees, [N] position
+    errors in metres, the scene's size: the largest distance between two true camera centres)."""
+    names = sorted(recovered)
+    rec = np.stack([recovered[n] for n in names])
+    true = np.stack([truth[n] for n in names])
+    sim = geo.umeyama(rec[:, :3, 3], true[:, :3, 3])
+    aligned = sim.apply_to_poses(rec)
+    rotation_error = geo.rotation_angle_deg(aligned[:, :3, :3], true[:, :3, :3])
+    position_error = np.linalg.norm(aligned[:, :3, 3] - true[:, :3, 3], axis=1)
+    size = float(max(np.linalg.norm(a - b) for a in true[:, :3, 3] for b in true[:, :3, 3]))
+    return sim, rotation_error, position_error, size
+
+
+@needs_pycolmap
+def test_process_data_recovers_the_known_poses(processed, capture) -> None:
+    scene, out, seconds = processed
+    truth = capture[1]
+    poses = _scene_poses(scene)
+    assert f"registered {len(truth)} of {len(truth)} photos" in out, out
+    _, rotation_error, position_error, size = _pose_errors(poses, truth)
+    summary = (
+        f"{len(poses)}/{len(truth)} registered in {seconds:.0f} s; after a similarity fit: rotation error max "
+        f"{rotation_error.max():.2f} deg (median {np.median(rotation_error):.2f}), position error max "
+        f"{position_error.max() / size:.4f} of the scene's {size:.1f} m (median {np.median(position_error) / size:.4f})"
+    )
+    # Measured: rotation max 0.07 deg, position max 0.10 % of the scene (without the EXIF focal
+    # length, from COLMAP's default guess 1.5x too long: 0.3 deg and 0.3 %).
+    assert rotation_error.max() < 0.5 and position_error.max() < 0.005 * size, summary
+    print(summary)
+
+
+@needs_pycolmap
+def test_gps_makes_the_frame_metric_and_up_up(processed, capture) -> None:
+    """With GPS the scene is in metres, east-north-up about the photos' mean position: the true world
+    (metres, x east, y north, z up) differs from it only by a translation."""
+    scene, out, _ = processed
+    transforms = json.loads((scene / "transforms.json").read_text())
+    assert transforms["capture_frame"]["kind"] == "enu" and "metres, east-north-up" in out, out
+    sim, _, _, _ = _pose_errors(_scene_poses(scene), capture[1])
+    turn = float(geo.rotation_angle_deg(sim.rotation[None], np.eye(3)[None])[0])
+    poses = _scene_poses(scene)
+    names = sorted(poses)
+    rec = np.stack([poses[n][:3, 3] for n in names])
+    true = np.stack([capture[1][n][:3, 3] for n in names])
+    i, j = np.triu_indices(len(names), 1)
+    ratio = np.linalg.norm(rec[i] - rec[j], axis=1) / np.linalg.norm(true[i] - true[j], axis=1)
+    summary = f"scene -> world scale {sim.scale:.4f}, turn {turn:.2f} deg; camera distance ratios median {np.median(ratio):.4f}, range {ratio.min():.3f}-{ratio.max():.3f}"
+    # The synthetic GPS is exact (quantised to ~0.3 mm), so only the SfM error shows: measured scale
+    # 1.0000, turn 0.00 deg, distance ratios 0.997-1.004.
+    assert abs(sim.scale - 1.0) < 0.01 and turn < 0.5 and np.all(np.abs(ratio - 1.0) < 0.02), summary
+    print(summary)
+
+
+def _courtyard_distance(points: np.ndarray) -> np.ndarray:
+    """[N, 3] world points -> [N] distance (m) to the nearest courtyard surface (ground or a box)."""
+    distance = np.abs(points[:, 2])
+    for box in DEFAULT_BOXES:
+        lo, hi = np.array(box.lo), np.array(box.hi)
+        outside = np.linalg.norm(np.maximum(np.maximum(lo - points, points - hi), 0.0), axis=1)
+        inside = np.minimum(points - lo, hi - points).min(axis=1)
+        distance = np.minimum(distance, np.where(inside > 0, inside, outside))
+    return distance
+
+
+@needs_pycolmap
+def test_scene_files_images_downscales_and_sparse_points(processed, capture) -> None:
+    import open3d as o3d
+
+    scene = processed[0]
+    transforms = json.loads((scene / "transforms.json").read_text())
+    assert transforms["camera_model"] == "OPENCV" and transforms["ply_file_path"] == "sparse_pc.ply"
+    assert transforms["applied_transform"] == np.eye(4)[:3].tolist()
+    assert abs(transforms["fl_x"] - FOCAL_PX) < 0.02 * FOCAL_PX, transforms["fl_x"]
+    for frame in transforms["frames"]:
+        name = Path(frame["file_path"]).name
+        assert (scene / "images" / name).read_bytes() == (capture[0] / name).read_bytes()
+        for factor in (2, 4, 8):
+            with Image.open(scene / f"images_{factor}" / name) as image:
+                assert image.size == (WIDTH // factor, HEIGHT // factor)
+    points = np.asarray(o3d.io.read_point_cloud(str(scene / "sparse_pc.ply")).points)
+    sim, _, _, _ = _pose_errors(_scene_poses(scene), capture[1])
+    distance = _courtyard_distance(sim.apply(points))
+    summary = f"{len(points)} sparse points; distance to the courtyard's surfaces: median {np.median(distance):.3f} m, 90 % {np.quantile(distance, 0.9):.3f} m"
+    # Measured: 2895 points, median 0.006 m, 90 % within 0.027 m.
+    assert len(points) > 500 and np.median(distance) < 0.02 and np.quantile(distance, 0.9) < 0.1, summary
+    print(summary)
+
+
+@needs_pycolmap
+def test_rerun_resumes_and_without_gps_the_frame_is_colmaps_turned_up(processed, capture, tmp_path) -> None:
+    """A second run over a finished workspace skips SfM; the same photos without GPS get COLMAP's
+    scale, centred on the cameras and turned so their level (image rows) is horizontal."""
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for path in sorted(capture[0].iterdir()):
+        with Image.open(path) as image:
+            image.save(photos / path.name, quality=95)  # no EXIF
+    scene = tmp_path / "scene"
+    scene.mkdir()
+    shutil.copytree(processed[0] / "colmap", scene / "colmap")
+    start = time.monotonic()
+    code, out, err = _run("--images", str(photos), "--output", str(scene))
+    assert code == 0, out + err
+    assert time.monotonic() - start < 10.0 and "done earlier" in err, err
+    transforms = json.loads((scene / "transforms.json").read_text())
+    assert transforms["capture_frame"]["kind"] == "up" and "COLMAP's units" in out and "level image rows" in out, out
+    poses = _scene_poses(scene)
+    assert np.allclose(np.stack(list(poses.values()))[:, :3, 3].mean(axis=0), 0.0, atol=1e-6)
+    sim, rotation_error, position_error, size = _pose_errors(poses, capture[1])
+    tilt = float(np.degrees(np.arccos(np.clip(sim.rotation[2, 2], -1.0, 1.0))))  # scene z vs world z
+    assert rotation_error.max() < 0.5 and position_error.max() < 0.005 * size and tilt < 0.5, f"tilt {tilt:.2f} deg"
+
+
+@needs_pycolmap
+def test_nerfstudio_reads_the_scene_and_export_frame_undoes_its_transform(processed, tmp_path) -> None:
+    """nerfstudio-data parses the scene (with the sparse points, and this plugin's datamanager exposes
+    train_dataparser_outputs, which ``ns-export pointcloud --save-world-frame`` reads); mapping the
+    model-frame cameras back with the saved dataparser transform gives transforms.json's poses, as
+    nerfstudio's own transform_poses_to_original_space does."""
+    from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
+
+    from scalar_nerfstudio.data.datamanager import ScalarDataManagerConfig
+
+    scene = processed[0]
+    config = ScalarDataManagerConfig(dataparser=NerfstudioDataParserConfig(data=scene, load_3D_points=True, eval_mode="all"))
+    manager = config.setup(device="cpu")
+    outputs = manager.train_dataparser_outputs
+    assert outputs.metadata["points3D_xyz"].shape[0] > 500
+    outputs.save_dataparser_transform(tmp_path / "run" / "dataparser_transforms.json")
+    transform = read_transform(tmp_path / "run" / "dataparser_transforms.json")
+    model_poses = outputs.cameras.camera_to_worlds
+    original = outputs.transform_poses_to_original_space(model_poses, camera_convention="opengl")
+    poses = _scene_poses(scene)
+    expected = np.stack([poses[Path(p).name][:3] for p in outputs.image_filenames])
+    assert np.allclose(original.numpy(), expected, atol=1e-4)
+    assert np.allclose(transform.to_capture(model_poses[:, :3, 3].numpy()), expected[:, :3, 3], atol=1e-4)
+
+
+# ----------------------------------------------------------------------------------- bad input
+
+
+def _refused(code: int, err: str, *words: str) -> None:
+    assert code == 1, err
+    for word in words:
+        assert word in err, err
+
+
+def test_a_folder_without_photos_is_refused(tmp_path) -> None:
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "empty" / "notes.txt").write_text("no photos here")
+    code, _, err = _run("--images", str(tmp_path / "empty"), "--output", str(tmp_path / "scene"))
+    _refused(code, err, "no photos")
+    assert not (tmp_path / "scene").exists()
+    code, _, err = _run("--images", str(tmp_path / "missing"), "--output", str(tmp_path / "scene"))
+    _refused(code, err, "no such folder")
+
+
+def _small_photos(folder: Path, count: int = 4, size: Tuple[int, int] = (64, 48), seed: int = 0) -> None:
+    folder.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(seed)
+    for i in range(count):
+        Image.fromarray(rng.integers(0, 255, (size[1], size[0], 3), dtype=np.uint8)).save(folder / f"p{i}.jpg", quality=90)
+
+
+def test_a_corrupt_jpeg_is_named(tmp_path) -> None:
+    _small_photos(tmp_path / "photos")
+    data = (tmp_path / "photos" / "p2.jpg").read_bytes()
+    (tmp_path / "photos" / "p2.jpg").write_bytes(data[: len(data) // 2])
+    code, _, err = _run("--images", str(tmp_path / "photos"), "--output", str(tmp_path / "scene"))
+    _refused(code, err, "p2.jpg", "cannot be decoded")
+    assert "p1.jpg" not in err and not (tmp_path / "scene").exists()
+
+
+def test_mixed_sizes_are_refused_and_named(tmp_path) -> None:
+    _small_photos(tmp_path / "photos", count=3)
+    _small_photos(tmp_path / "other", count=1, size=(48, 64))
+    shutil.move(tmp_path / "other" / "p0.jpg", tmp_path / "photos" / "portrait.jpg")
+    code, _, err = _run("--images", str(tmp_path / "photos"), "--output", str(tmp_path / "scene"))
+    _refused(code, err, "64x48 px: 3 photo(s)", "48x64 px: 1 photo(s): portrait.jpg", "one camera")
+    assert not (tmp_path / "scene").exists()
+
+
+def test_spatial_matching_without_gps_is_refused(tmp_path) -> None:
+    _small_photos(tmp_path / "photos")
+    code, _, err = _run("--images", str(tmp_path / "photos"), "--output", str(tmp_path / "scene"), "--matching", "spatial")
+    _refused(code, err, "--matching spatial", "4 of 4 photo(s) have none")
+    assert not (tmp_path / "scene").exists()
+
+
+def test_an_output_folder_with_other_files_or_holding_the_photos_is_refused(tmp_path) -> None:
+    _small_photos(tmp_path / "photos")
+    (tmp_path / "busy").mkdir()
+    (tmp_path / "busy" / "thesis.tex").write_text("")
+    code, _, err = _run("--images", str(tmp_path / "photos"), "--output", str(tmp_path / "busy"))
+    _refused(code, err, "thesis.tex", "did not write")
+    _small_photos(tmp_path / "scene" / "images")
+    code, _, err = _run("--images", str(tmp_path / "scene" / "images"), "--output", str(tmp_path / "scene"))
+    _refused(code, err, "rewrites")
+    assert sorted(p.name for p in (tmp_path / "scene").iterdir()) == ["images"]
+
+
+@needs_pycolmap
+def test_photos_that_do_not_overlap_are_refused_without_a_scene(tmp_path) -> None:
+    _small_photos(tmp_path / "photos", count=4, size=(160, 120))
+    code, _, err = _run("--images", str(tmp_path / "photos"), "--output", str(tmp_path / "scene"))
+    _refused(code, err, "could not place any photos")
+    assert not (tmp_path / "scene" / "transforms.json").exists()
+    assert sorted(p.name for p in (tmp_path / "scene").iterdir()) == ["colmap"]  # kept for a re-run
+    # Other options over that workspace: refused until --overwrite.
+    code, _, err = _run("--images", str(tmp_path / "photos"), "--output", str(tmp_path / "scene"), "--max-image-size", "500")
+    _refused(code, err, "--overwrite")
+
+
+# ---------------------------------------------------------------------------------- unit checks
+
+
+def test_gps_read_from_exif_signs_and_altitude(tmp_path) -> None:
+    Image.new("RGB", (8, 8)).save(tmp_path / "a.jpg", exif=_exif(np.array([-33.8568, -151.2153, -12.5])))
+    photo = read_photo(tmp_path / "a.jpg")
+    assert photo.camera == "scalar-nerf courtyard" and photo.size == (8, 8)
+    assert np.allclose(photo.gps, (-33.8568, -151.2153, -12.5), atol=1e-7)
+    Image.new("RGB", (8, 8)).save(tmp_path / "b.jpg", exif=_exif(np.array([0.0, 0.0, 5.0])))
+    assert read_photo(tmp_path / "b.jpg").gps is None  # a camera's "no fix"
+
+
+def test_enu_round_trip_and_agreement_with_pycolmap() -> None:
+    enu = np.random.default_rng(0).uniform(-2000.0, 2000.0, size=(20, 3))
+    lla = geo.enu_to_wgs84(enu, GPS_ORIGIN)
+    assert np.allclose(geo.wgs84_to_enu(lla, GPS_ORIGIN), enu, atol=1e-6)
+    if HAS_PYCOLMAP:
+        import pycolmap
+
+        transform = pycolmap.GPSTransform(pycolmap.GPSTransformEllipsoid.WGS84)
+        assert np.allclose(transform.ellipsoid_to_enu(lla, *GPS_ORIGIN), enu, atol=1e-6)
+
+
+def _random_similarity(seed: int) -> geo.Similarity:
+    rng = np.random.default_rng(seed)
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    q *= np.sign(np.linalg.det(q))
+    return geo.Similarity(float(rng.uniform(0.1, 10.0)), q, rng.normal(size=3) * 100.0)
+
+
+def test_umeyama_recovers_a_similarity_and_drops_a_jumped_fix() -> None:
+    truth = _random_similarity(1)
+    points = np.random.default_rng(2).normal(size=(30, 3))
+    target = truth.apply(points)
+    fitted = geo.umeyama(points, target)
+    assert np.isclose(fitted.scale, truth.scale) and np.allclose(fitted.rotation, truth.rotation) and np.allclose(fitted.translation, truth.translation)
+    noisy = target + np.random.default_rng(3).normal(scale=0.01, size=target.shape)
+    noisy[5] += 50.0
+    robust, keep = geo.robust_umeyama(points, noisy)
+    assert not keep[5] and keep.sum() >= 25 and np.allclose(robust.rotation, truth.rotation, atol=1e-2)
+    assert np.allclose(fitted.inverse().apply(target), points)
+    with pytest.raises(ValueError, match="collinear"):
+        geo.umeyama(np.outer(np.arange(5.0), [1.0, 2.0, 3.0]), np.outer(np.arange(5.0), [1.0, 0.0, 0.0]))
+
+
+def _level_cameras(count: int = 12, seed: int = 0) -> np.ndarray:
+    """[N, 4, 4] OpenCV poses of cameras with level image rows (a drone's nadir and oblique views)
+    over a 100 m x 60 m area, in the world (z up)."""
+    rng = np.random.default_rng(seed)
+    poses = np.stack([np.eye(4)] * count)
+    for k in range(count):
+        position = np.array([rng.uniform(-50, 50), rng.uniform(-30, 30), rng.uniform(48, 52)])
+        heading = rng.uniform(-np.pi, np.pi)
+        target = position + np.array([0.3 * np.cos(heading), 0.3 * np.sin(heading), -1.0])
+        poses[k] = look_at(position, target) @ np.diag([1.0, -1.0, -1.0, 1.0])  # OpenGL -> OpenCV axes
+    return poses
+
+
+def test_capture_frame_without_complete_gps_levels_the_cameras() -> None:
+    world = _level_cameras()
+    tilt = _random_similarity(4)
+    colmap = geo.Similarity(0.37, tilt.rotation, tilt.translation).apply_to_poses(world)
+    names = [f"{k}.jpg" for k in range(len(world))]
+    frame = capture_frame(names, colmap, {"0.jpg": GPS_ORIGIN})
+    assert frame.kind == "up" and "1.jpg" in frame.note and "level" in frame.note
+    moved = frame.scene_from_colmap.apply_to_poses(colmap)
+    assert np.allclose(moved[:, :3, 3].mean(axis=0), 0.0, atol=1e-9)
+    assert np.allclose(moved[:, 2, 0], 0.0, atol=1e-9) and np.all(moved[:, 2, 2] < -0.9)  # rows level, looking down
+
+
+def test_gps_altitude_drift_leaves_up_to_the_cameras_level() -> None:
+    """GPS whose altitude drifts 100 m over the flight (as a consumer camera's does) but whose
+    horizontal position is right to 2 m: the frame stays level, in metres, north up."""
+    world = _level_cameras(count=30, seed=1)
+    rng = np.random.default_rng(2)
+    enu = world[:, :3, 3] + np.c_[rng.normal(0.0, 2.0, (30, 2)), np.linspace(-50.0, 50.0, 30)]
+    gps = dict(zip([f"{k}.jpg" for k in range(30)], geo.enu_to_wgs84(enu, GPS_ORIGIN)))
+    tilt = _random_similarity(5)
+    colmap = geo.Similarity(0.37, tilt.rotation, tilt.translation).apply_to_poses(world)
+    frame = capture_frame(list(gps), colmap, gps)
+    assert frame.kind == "enu-level" and "disagree" in frame.note, frame.describe()
+    moved = frame.scene_from_colmap.apply_to_poses(colmap)
+    origin_offset = geo.wgs84_to_enu(GPS_ORIGIN[None], frame.gps_origin)[0]
+    assert np.allclose(moved[:, 2, 0], 0.0, atol=1e-9)  # level
+    sim = geo.umeyama(moved[:, :3, 3], world[:, :3, 3])
+    assert abs(sim.scale - 1.0) < 0.02 and geo.rotation_angle_deg(sim.rotation[None], np.eye(3)[None])[0] < 1.0
+    assert np.allclose(sim.translation[:2], -origin_offset[:2], atol=2.0)
+
+
+def _dataparser_transform(seed: int) -> DataparserTransform:
+    sim = _random_similarity(seed)
+    return DataparserTransform(np.hstack([sim.rotation, sim.translation[:, None]]), sim.scale)
+
+
+def test_export_frame_round_trip_ply_and_obj_agrees_with_nerfstudio(tmp_path) -> None:
+    """Capture-frame points -> the model frame (dataparser transform) -> written as ns-export would
+    (.ply with normals, .obj) -> scalar-nerf-export-frame -> the original points and normals."""
+    from nerfstudio.data.dataparsers.base_dataparser import transform_poses_to_original_space
+    from plyfile import PlyData, PlyElement
+
+    transform = _dataparser_transform(5)
+    rng = np.random.default_rng(6)
+    points = rng.uniform(-50.0, 50.0, size=(40, 3))
+    normals = rng.normal(size=(40, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    model_points = transform.to_model(points)
+    model_normals = normals @ transform.rotation.T
+    poses = torch.from_numpy(np.concatenate([np.tile(np.eye(3), (40, 1, 1)), model_points[:, :, None]], axis=2))
+    nerfstudio_back = transform_poses_to_original_space(poses, torch.from_numpy(transform.transform), transform.scale)[:, :3, 3].numpy()
+    assert np.allclose(nerfstudio_back, points, atol=1e-9)
+
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.yml").write_text("")
+    (run / "dataparser_transforms.json").write_text(json.dumps({"transform": transform.transform.tolist(), "scale": transform.scale}))
+    vertex = np.empty(40, dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4"), ("red", "u1")])
+    for k, axis in enumerate("xyz"):
+        vertex[axis] = model_points[:, k]
+        vertex["n" + axis] = model_normals[:, k]
+    vertex["red"] = np.arange(40)
+    faces = np.array([([0, 1, 2],)], dtype=[("vertex_indices", "i4", (3,))])
+    PlyData([PlyElement.describe(vertex, "vertex"), PlyElement.describe(faces, "face")], text=False).write(str(tmp_path / "mesh.ply"))
+    obj = "".join(f"v {x!r} {y!r} {z!r} 0.5 0.5 0.5\n" for x, y, z in model_points)
+    obj += "".join(f"vn {x!r} {y!r} {z!r}\n" for x, y, z in model_normals) + "f 1//1 2//2 3//3\n"
+    (tmp_path / "mesh.obj").write_text(obj)
+
+    for name in ("mesh.ply", "mesh.obj"):
+        code = export_frame_cli.main(["--load-config", str(run / "config.yml"), "--input", str(tmp_path / name), "--output", str(tmp_path / f"world_{name}")])
+        assert code == 0
+    ply = PlyData.read(str(tmp_path / "world_mesh.ply"))
+    back = np.stack([ply["vertex"][a] for a in "xyz"], axis=1)
+    back_normals = np.stack([ply["vertex"]["n" + a] for a in "xyz"], axis=1)
+    assert np.allclose(back, points, atol=1e-9) and np.allclose(back_normals, normals, atol=1e-5)
+    assert ply["vertex"]["red"].tolist() == list(range(40)) and ply["face"]["vertex_indices"][0].tolist() == [0, 1, 2]
+    lines = (tmp_path / "world_mesh.obj").read_text().splitlines()
+    obj_points = np.array([[float(v) for v in line.split()[1:4]] for line in lines if line.startswith("v ")])
+    obj_normals = np.array([[float(v) for v in line.split()[1:4]] for line in lines if line.startswith("vn ")])
+    assert np.allclose(obj_points, points, atol=1e-6) and np.allclose(obj_normals, normals, atol=1e-6)
+    assert lines[0].endswith(" 0.5 0.5 0.5") and lines[-1] == "f 1//1 2//2 3//3"
+
+
+def test_export_frame_errors(tmp_path) -> None:
+    (tmp_path / "run").mkdir()
+    (tmp_path / "mesh.ply").write_text("not a ply")
+    assert export_frame_cli.main(["--load-config", str(tmp_path / "run" / "config.yml"), "--input", str(tmp_path / "mesh.ply"), "--output", str(tmp_path / "o.ply")]) == 1
+    (tmp_path / "run" / "dataparser_transforms.json").write_text(json.dumps({"transform": np.eye(4)[:3].tolist(), "scale": 2.0}))
+    with pytest.raises(ProcessDataError, match="not a readable .ply"):
+        map_file(tmp_path / "mesh.ply", tmp_path / "o.ply", read_transform(tmp_path / "run" / "dataparser_transforms.json"))
+    with pytest.raises(ProcessDataError, match="must end in .ply"):
+        map_file(tmp_path / "mesh.ply", tmp_path / "o.obj", read_transform(tmp_path / "run" / "dataparser_transforms.json"))
+
+
+# ------------------------------------------------------------- ns-export on a run of the capture
+
+
+def exported_points_against_sparse(scene: Path, run: Path, export_dir: Path) -> Dict[str, float]:
+    """``ns-export pointcloud --save-world-frame True`` of ``run`` (trained on ``scene``, a
+    process-data scene) and, mapped with scalar-nerf-export-frame, the same export in the model
+    frame: both against the scene's sparse SfM points, in the capture's frame.
+
+    Returns, in the capture's units: the median distance from each exported point to its nearest
+    sparse point for each route (``world_median``, ``mapped_median``), the sparse points' own median
+    nearest-neighbour spacing, the distance between each route's centroid and the sparse points'
+    (``*_centroid_offset``) and between the two routes' centroids (``routes_centroid_offset``), all
+    offsets relative to the sparse points' ``extent`` (the diagonal of their bounding box).
+    """
+    import open3d as o3d
+
+    def export(directory: Path, world: bool) -> np.ndarray:
+        done = subprocess.run(
+            [sys.executable, "-m", "nerfstudio.scripts.exporter", "pointcloud", "--load-config", str(run / "config.yml"),
+             "--output-dir", str(directory), "--num-points", "3000", "--remove-outliers", "True", "--save-world-frame", str(world)],
+            capture_output=True, text=True, timeout=600,
+        )
+        assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+        return np.asarray(o3d.io.read_point_cloud(str(directory / "point_cloud.ply")).points)
+
+    sparse = np.asarray(o3d.io.read_point_cloud(str(scene / "sparse_pc.ply")).points)
+    tree = o3d.geometry.KDTreeFlann(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(sparse)))
+
+    def nearest(points: np.ndarray) -> np.ndarray:
+        return np.array([math.sqrt(tree.search_knn_vector_3d(p, 1)[2][0]) for p in points])
+
+    world = export(export_dir / "world", True)
+    export(export_dir / "model", False)
+    assert export_frame_cli.main(["--load-config", str(run / "config.yml"), "--input", str(export_dir / "model" / "point_cloud.ply"), "--output", str(export_dir / "mapped.ply")]) == 0
+    mapped = np.asarray(o3d.io.read_point_cloud(str(export_dir / "mapped.ply")).points)
+    spacing = np.array([math.sqrt(tree.search_knn_vector_3d(p, 2)[2][1]) for p in sparse])
+    extent = float(np.linalg.norm(sparse.max(axis=0) - sparse.min(axis=0)))
+    return {
+        "world_median": float(np.median(nearest(world))),
+        "mapped_median": float(np.median(nearest(mapped))),
+        "sparse_spacing": float(np.median(spacing)),
+        "world_centroid_offset": float(np.linalg.norm(world.mean(axis=0) - sparse.mean(axis=0)) / extent),
+        "mapped_centroid_offset": float(np.linalg.norm(mapped.mean(axis=0) - sparse.mean(axis=0)) / extent),
+        "routes_centroid_offset": float(np.linalg.norm(mapped.mean(axis=0) - world.mean(axis=0)) / extent),
+        "extent": extent,
+    }
+
+
+@pytest.mark.slow
+@needs_pycolmap
+def test_ns_export_in_the_capture_frame_lies_on_the_sparse_points(processed, tmp_path) -> None:
+    """A tiny scalar-nerf run (conftest's TINY: 40 global steps, 2 blocks of 15) on the processed
+    capture, exported with ``--save-world-frame True`` and through scalar-nerf-export-frame: the two
+    routes agree and both clouds lie in the capture's frame, around the sparse points. A run this
+    short is still hazy, so the bounds against the sparse points are loose (not measured yet: the
+    helper that wrote this test could not train); the route agreement is the frame check."""
+    from conftest import TINY, ns_train_command, run_dirs
+
+    scene = processed[0]
+    trained = subprocess.run(ns_train_command(scene, tmp_path / "outputs", *TINY), capture_output=True, text=True, timeout=900)
+    assert trained.returncode == 0, trained.stdout[-3000:] + trained.stderr[-3000:]
+    (run,) = run_dirs(tmp_path / "outputs")
+    figures = exported_points_against_sparse(scene, run, tmp_path / "export")
+    summary = ", ".join(f"{k} {v:.3f}" for k, v in figures.items())
+    assert figures["routes_centroid_offset"] < 0.05, summary
+    assert figures["world_centroid_offset"] < 0.25 and figures["mapped_centroid_offset"] < 0.25, summary
+    assert figures["world_median"] < 0.1 * figures["extent"] and figures["mapped_median"] < 0.1 * figures["extent"], summary
+    print(summary)
