@@ -1,7 +1,7 @@
 """``scalar-nerf-process-data`` (photos -> nerfstudio scene by pycolmap SfM) and ``scalar-nerf-export-frame``.
 
 The capture with known poses: the project's courtyard (its geometry, ray-cast by
-``synthetic_scene.render_rays``) seen by 24 cameras on a ring looking inwards, 320 x 240 JPEGs with
+``scenes.courtyard.render_rays``) seen by 24 cameras on a ring looking inwards, 320 x 240 JPEGs with
 EXIF focal length and GPS positions (exact: the world's metres as east-north-up about a reference
 point). The courtyard's own texture is replaced here by a 3-D value noise: the generator's checker
 flips on the round-off sign of hit points that lie on its cell edges (the ground z = 0 and box faces
@@ -28,7 +28,7 @@ import pytest
 import torch
 from PIL import ExifTags, Image, TiffImagePlugin
 
-from scalar_nerfstudio.data.synthetic_scene import DEFAULT_BOXES, look_at, render_rays
+from scalar_nerfstudio.scenes.courtyard import DEFAULT_BOXES, look_at, render_rays
 from scalar_nerfstudio.process import geo
 from scalar_nerfstudio.process.align import capture_frame
 from scalar_nerfstudio.process.errors import ProcessDataError
