@@ -22,7 +22,7 @@ PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 @pytest.mark.slow
 def test_quick_benchmark_end_to_end(tmp_path: Path) -> None:
     """Global phase, one model, blocks with three fusions, and nerfacto (offline, no LPIPS) on the
-    synthetic scene: table, JSON, curves and the three plots."""
+    synthetic scene: table, JSON, curves, the three plots and the held-out view."""
     output = tmp_path / "bench"
     result = subprocess.run(
         ["scalar-nerf-benchmark", "--quick", "--output-dir", str(output), "--variants", "ngp-t", "scalar", "nerfacto",
@@ -64,9 +64,15 @@ def test_quick_benchmark_end_to_end(tmp_path: Path) -> None:
     assert sum(block_s.values()) == pytest.approx(scalar["train_s"] - global_phase["train_s"], rel=1e-6)
     assert scalar["parallel_train_s"] == pytest.approx(global_phase["train_s"] + max(block_s.values()))
     assert scalar["parallel_train_s"] < scalar["train_s"] and "## Equal wall-clock, K blocks on K workers" in table
-    for name in ("psnr_vs_time.png", "psnr_vs_render_time.png", "psnr_vs_parameters.png"):
+    for name in ("psnr_vs_time.png", "psnr_vs_render_time.png", "psnr_vs_parameters.png", "heldout_view.png"):
         data = (output / name).read_bytes()
         assert data.startswith(PNG_SIGNATURE) and len(data) > 5000, name
+    # the blocks against the one model's better schedule (only ngp-t ran: it), and one held-out view side by side:
+    # truth | ngp-t | scalar (neither auto nor auto-parallel ran) | its block colours, each run's PSNR on that view
+    assert "## The blocks against the one model" in table and "(restart, `ngp-t`)" in table
+    panels = report["heldout_view"]["panels"]
+    assert [p["variant"] for p in panels] == [None, "ngp-t", "scalar", "scalar"] and all(5 < p["psnr"] < 60 for p in panels[1:3])
+    assert "![held-out view](heldout_view.png)" in table
     # Every run keeps its final checkpoint (written after its timed steps): the blocks' run, loaded
     # again from its folder, scores the held-out PSNR the benchmark reported for it.
     scored = subprocess.run(
@@ -379,6 +385,124 @@ def test_a_one_model_run_that_ended_before_the_blocks_is_trained_again_for_their
     assert wall_clock_variants(config, variants, results) == []
 
 
+def test_the_one_models_train_with_each_schedule_and_their_decay_runs_are_rerun_for_the_wall_clock(tmp_path: Path) -> None:
+    """``ngp-t-decay`` / ``ngp-t2-decay``: the same one models as ``ngp-t`` / ``ngp-t2`` with one decay over the
+    run (``one_model_restart`` 0), in the default variant list; a decay run that ended before the blocks'
+    wall-clock is trained again for it as ``ngp-t`` is (``ngp-t-decay-wall-clock``), and labelled."""
+    from scalar_nerfstudio.benchmarking.report import labels
+    from scalar_nerfstudio.benchmarking.variants import VARIANTS, one_model_schedule, wall_clock_retry, wall_clock_variants
+
+    assert {"ngp-t", "ngp-t2", "ngp-t-decay", "ngp-t2-decay"} <= set(VARIANTS) == set(BenchmarkConfig().variants)
+    assert one_model_schedule("ngp-t2-decay") == ("ngp-t2", "decay") and one_model_schedule("ngp-t") == ("ngp-t", "restart")
+    with pytest.raises(KeyError, match="scalar"):
+        one_model_schedule("scalar")
+    config = BenchmarkConfig(data=tmp_path, global_steps=900, block_steps=175, num_blocks=4, log2_table=10,
+                             variants=("ngp-t", "ngp-t-decay", "ngp-t2", "ngp-t2-decay"))
+    variants = plan(config)[0]
+    by_name = {v.name: v for v in variants}
+    assert list(by_name) == ["ngp-t", "ngp-t-decay", "ngp-t2", "ngp-t2-decay"]
+    for restart, decay in (("ngp-t", "ngp-t-decay"), ("ngp-t2", "ngp-t2-decay")):
+        assert by_name[decay].overrides == {**by_name[restart].overrides, "pipeline.one_model_restart": 0.0}
+        assert "pipeline.one_model_restart" not in by_name[restart].overrides  # the pipeline's default schedule
+    assert by_name["ngp-t2-decay"].overrides["pipeline.model.field.log2_hashmap_size"] == 12
+    assert by_name["ngp-t-decay"].overrides["pipeline.global_steps"] == 1600
+    results = {"ngp-t": {"steps": 1600, "train_s": 119.0}, "ngp-t-decay": {"steps": 1600, "train_s": 120.0},
+               "ngp-t2": {"steps": 1600, "train_s": 139.0}, "ngp-t2-decay": {"steps": 1600, "train_s": 137.0},
+               "auto-parallel": {"parallel_train_s": 140.0}}
+    planned = {again.name: again for again, _ in wall_clock_variants(config, variants, results)}
+    assert list(planned) == ["ngp-t-wall-clock", "ngp-t-decay-wall-clock"]  # the 2^12 runs ended within 3 %
+    assert planned["ngp-t-decay-wall-clock"].overrides == {**by_name["ngp-t-decay"].overrides, "pipeline.global_steps": 1867}
+    second = wall_clock_retry(config, [(planned["ngp-t-decay-wall-clock"], {"steps": 1867, "train_s": 120.0})], 140.0)
+    assert second.name == "ngp-t-decay-wall-clock-2" and second.overrides["pipeline.one_model_restart"] == 0.0
+    names = labels(10)
+    assert names[("ngp-t-decay", "global")] == "NGP_10 (one model, 2^10), one decay over the run"
+    assert names[("ngp-t2-decay-wall-clock", "global")] == "NGP_12 (one model, 2^12), one decay over the run, trained for the blocks' wall-clock"
+
+
+def test_the_blocks_are_compared_with_the_better_schedule_of_each_one_model() -> None:
+    """At each budget the one-model baseline of a table size is the better of its restart and decay runs
+    (the restart run on a tie; the one that ran when only one did); at equal wall-clock each is read as
+    the equal wall-clock table reads it. The report's "blocks - NGP" rows use it and name its schedule
+    and run; both runs stay in the full table."""
+    from scalar_nerfstudio.benchmarking.report import blocks_against_one_model, one_model_baseline, rows
+
+    def run(steps: int, train_s: float, psnr: float, **extra) -> dict:
+        return {"steps": steps, "train_s": train_s, "train_rays_per_s": 1.0, "parameters": 1, "peak_rss_mib": 1.0, "fusions": None,
+                "curve": [{"step": steps // 2, "train_s": train_s / 2, "psnr": psnr - 1.0}, {"step": steps, "train_s": train_s, "psnr": psnr}],
+                "final": {"psnr": psnr, "ssim": 0.5, "render_ms_per_image": 1.0}, **extra}
+
+    results = {
+        "ngp-t": run(1600, 100.0, 17.60), "ngp-t-decay": run(1600, 100.0, 17.90),
+        "ngp-t-wall-clock": run(1900, 120.0, 17.70), "ngp-t-decay-wall-clock": run(1900, 120.0, 18.00),
+        "ngp-t2": run(1600, 130.0, 18.80), "ngp-t2-decay": run(1600, 130.0, 18.50),
+    }
+    best = one_model_baseline(results, "ngp-t")
+    assert (best["variant"], best["schedule"], best["psnr"], best["run"]) == ("ngp-t-decay", "decay", 17.90, "ngp-t-decay")
+    assert one_model_baseline(results, "ngp-t2")["variant"] == "ngp-t2"
+    at_wall_clock = one_model_baseline(results, "ngp-t", 120.0)  # both ended at 100 s: their reruns' ends
+    assert (at_wall_clock["variant"], at_wall_clock["run"], at_wall_clock["psnr"]) == ("ngp-t-decay", "ngp-t-decay-wall-clock", 18.00)
+    at_75 = one_model_baseline(results, "ngp-t2", 97.5)  # read off the curves: 18.30 against 18.00
+    assert at_75["variant"] == "ngp-t2" and at_75["psnr"] == pytest.approx(18.30)
+    assert one_model_baseline(results, "ngp-t2", 10.0) is None  # before either's first evaluation
+    tie = {"ngp-t": run(1600, 100.0, 17.5), "ngp-t-decay": run(1600, 100.0, 17.5)}
+    assert one_model_baseline(tie, "ngp-t")["schedule"] == "restart"
+    assert one_model_baseline({"ngp-t-decay": run(1600, 100.0, 17.5)}, "ngp-t")["variant"] == "ngp-t-decay"
+    assert one_model_baseline({"scalar": run(1600, 100.0, 19.0)}, "ngp-t") is None
+
+    blocks = run(1600, 200.0, 19.00, parallel_train_s=120.0, fusions={"nearest-guarded": {"psnr": 19.0, "ssim": 0.5, "render_ms_per_image": 1.0},
+                                                                       "global-only": {"psnr": 17.0, "ssim": 0.5, "render_ms_per_image": 1.0}})
+    results["auto"] = blocks
+    table = rows(results, log2_table=10)
+    assert {"ngp-t", "ngp-t-decay", "ngp-t2", "ngp-t2-decay"} <= {r["variant"] for r in table}
+    lines = "\n".join(blocks_against_one_model(results, table, log2_table=10))
+    assert "| blocks | fusion | budget | PSNR | NGP_10 (schedule, run read) | blocks - NGP_10 | NGP_12 (schedule, run read) | blocks - NGP_12 |" in lines
+    assert "| equal total steps, 1600 | 19.00 | 17.90 (decay, `ngp-t-decay`) | +1.10 | 18.80 (restart, `ngp-t2`) | +0.20 |" in lines
+    assert "| equal wall-clock, 120 s | 19.00 | 18.00 (decay, `ngp-t-decay-wall-clock`) | +1.00 |" in lines
+    assert "global-only" not in lines  # each block variant with its own fusion
+    results["auto-parallel"] = {**blocks, "steps": 7700}
+    lines = blocks_against_one_model(results, rows(results, log2_table=10), log2_table=10)
+    assert sum("equal total steps" in line for line in lines) == 1  # auto-parallel: at equal wall-clock only
+    assert blocks_against_one_model({"auto": blocks}, rows({"auto": blocks})) == []  # no one model ran
+
+
+def test_the_heldout_view_shows_truth_one_model_blocks_and_block_colours(full_run: Path, tmp_path: Path) -> None:
+    """heldout_view.png from trained runs' folders (here one 2-block run stands for both): ground truth,
+    the one model, the blocks and their block colours, captioned with each run's PSNR on that view, which
+    is the run's own eval PSNR of that image; a view the scene does not have is refused by its option."""
+    import numpy as np
+
+    from scalar_nerfstudio.benchmarking.heldout_view import render_view, shown_runs, write_heldout_view
+    from scalar_nerfstudio.blocks.palette import BLOCK_PALETTE
+
+    rendered = render_view(full_run, 1)
+    assert rendered["truth"].shape == rendered["rgb"].shape == rendered["block_colour"].shape == (72, 96, 3)
+    assert rendered["views"] == 3 and 5 < rendered["psnr"] < 60
+    colours = rendered["block_colour"].reshape(-1, 3)
+    assert any(np.isclose(colours, c, atol=1e-3).all(axis=1).any() for c in BLOCK_PALETTE[:2])  # pixels given by a block
+    with pytest.raises(SystemExit, match="--heldout-view 3: the scene has 3 held-out views"):
+        render_view(full_run, 3)
+
+    def result(psnr: float, **extra) -> dict:
+        return {"run_dir": str(full_run), "steps": 70, "train_s": 10.0, "final": {"psnr": psnr},
+                "curve": [{"step": 70, "train_s": 10.0, "psnr": psnr}], **extra}
+
+    results = {"ngp-t": result(17.0), "ngp-t-decay": result(17.2), "scalar": result(18.0, parallel_train_s=8.0),
+               "auto": result(18.5, parallel_train_s=9.0)}
+    baseline, blocks = shown_runs(results)
+    assert baseline["variant"] == "ngp-t-decay" and blocks == "auto"
+    assert shown_runs({k: v for k, v in results.items() if k != "auto"})[1] == "scalar"  # neither auto nor auto-parallel ran
+    config = BenchmarkConfig(data=tmp_path, output_dir=tmp_path, log2_table=14, heldout_view=1)
+    view = write_heldout_view(config, results)
+    data = (tmp_path / "heldout_view.png").read_bytes()
+    assert data.startswith(PNG_SIGNATURE) and len(data) > 5000
+    captions = [p["caption"] for p in view["panels"]]
+    assert view["view"] == 1 and len(captions) == 4 and captions[0] == "ground truth, held-out view 1"
+    assert captions[1].startswith("one model ngp-t-decay (2^14, decay schedule, 70 steps): ") and captions[1].endswith(" dB")
+    assert captions[2].startswith("blocks auto (nearest-guarded fusion, 70 steps): ") and captions[3].startswith("block colours of auto")
+    assert view["panels"][1]["psnr"] == view["panels"][2]["psnr"] == pytest.approx(rendered["psnr"])
+    assert write_heldout_view(config, {"nerfacto": result(15.0)}) is None
+
+
 def test_the_benchmark_trains_the_wall_clock_run_after_the_others_and_reports_it(tmp_path: Path) -> None:
     """The schedule runs the extra one-model run once every planned variant has run, records its note,
     and the equal wall-clock table reads that run's end (not the first run's) at the blocks' time."""
@@ -676,6 +800,7 @@ def test_bad_benchmark_options_are_refused_before_anything_is_written(tmp_path: 
         (BenchmarkConfig(data=scene, output_dir=output, decoder_width=0), "--decoder-width 0"),
         (BenchmarkConfig(data=scene, output_dir=output, fusions=("guided",)), "--fusions guided"),
         (BenchmarkConfig(data=scene, output_dir=output, wall_clock_tries=0), "--wall-clock-tries 0"),
+        (BenchmarkConfig(data=scene, output_dir=output, heldout_view=-1), "--heldout-view -1"),
         (BenchmarkConfig(data=tmp_path / "missing", output_dir=output), "is not a scene folder"),
         (BenchmarkConfig(output_dir=output), "is not a scene folder"),
     ):

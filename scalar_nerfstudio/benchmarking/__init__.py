@@ -5,7 +5,9 @@
 * :mod:`.schedule`: sets up the scene and runs the variants, each in a subprocess, in order.
 * :mod:`.runner`: that subprocess (``python -m scalar_nerfstudio.benchmarking.runner SPEC.json``):
   trains and evaluates one variant.
-* :mod:`.report`: the table (with its Pareto fronts), results.json, results.md and the plots.
+* :mod:`.report`: the table (with its Pareto fronts), the blocks against the better one-model schedule,
+  results.json, results.md and the plots.
+* :mod:`.heldout_view`: one held-out view side by side (truth, one model, blocks, block colours).
 
 ``scalar-nerf-benchmark`` (scripts/benchmark.py) is the command line around these.
 """

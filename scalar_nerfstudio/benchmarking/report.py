@@ -1,7 +1,8 @@
 """The benchmark's report: one row per (variant, fusion) with its Pareto fronts, and the files.
 
 Written to the output folder: results.json (the report: command, machine, config, notes, rows, the
-variants' results), results.md (the table) and psnr_vs_time.png, psnr_vs_render_time.png,
+variants' results), results.md (the table, equal wall-clock, the blocks against the better schedule of
+each one model) and psnr_vs_time.png, psnr_vs_render_time.png,
 psnr_vs_parameters.png. The JSON and Markdown are written atomically.
 """
 
@@ -16,13 +17,17 @@ from typing import Any, Dict, List, Optional, Tuple
 
 from scalar_nerfstudio.atomic_io import atomic_write_text
 from scalar_nerfstudio.benchmarking.variants import (
-    ONE_MODEL_VARIANTS, WALL_CLOCK_SUFFIX, BenchmarkConfig, canonical_variant, parallel_block_steps,
+    DECAY_SUFFIX, ONE_MODEL_SCHEDULES, ONE_MODEL_VARIANTS, WALL_CLOCK_SUFFIX, BenchmarkConfig, canonical_variant, parallel_block_steps,
 )
 
 __all__ = [
-    "LABELS", "describe_machine", "equal_wall_clock", "labels", "markdown", "on_pareto_front", "plots", "psnr_at",
-    "results_table_text", "rewrite_report", "rows", "write_report",
+    "LABELS", "SCHEDULE_NAMES", "blocks_against_one_model", "describe_machine", "equal_wall_clock", "labels", "markdown",
+    "on_pareto_front", "one_model_at", "one_model_baseline", "plots", "psnr_at", "results_table_text", "rewrite_report", "rows",
+    "write_report",
 ]
+
+#: How the report names the one-model schedules of :data:`.variants.ONE_MODEL_SCHEDULES`.
+SCHEDULE_NAMES: Dict[str, str] = {"restart": "the one-model default, hold then restart", "decay": "one decay over the run"}
 
 #: Rows of the report at the paper's T = 19: (variant, fusion) -> label (see :func:`labels`).
 LABELS: Dict[Tuple[str, str], str] = {
@@ -73,6 +78,8 @@ def labels(log2_table: int = 19) -> Dict[Tuple[str, str], str]:
     out = dict(LABELS)
     out[("ngp-t", "global")] = f"NGP_{log2_table} (one model, 2^{log2_table})"
     out[("ngp-t2", "global")] = f"NGP_{log2_table + 2} (one model, 2^{log2_table + 2})"
+    for size, schedules in ONE_MODEL_SCHEDULES.items():
+        out[(schedules["decay"], "global")] = out[(size, "global")] + ", one decay over the run"
     for name in ONE_MODEL_VARIANTS:
         out[(name + WALL_CLOCK_SUFFIX, "global")] = out[(name, "global")] + ", trained for the blocks' wall-clock"
     return out
@@ -147,23 +154,80 @@ def equal_wall_clock(results: Dict[str, Dict[str, Any]], table: List[Dict[str, A
     for name in ONE_MODEL_VARIANTS:
         if name not in results:
             continue
-        again = results.get(name + WALL_CLOCK_SUFFIX)  # trained once more for the blocks' wall-clock (--match-wall-clock)
         for seconds in times:
-            curve = results[name]["curve"]
-            found = psnr_at(curve, seconds)
-            last = max(curve, key=lambda p: p["train_s"]) if curve else None
-            if found:
-                cell = f"{found[0]:.2f} (step {found[1]:.0f})"
-            elif last is not None and seconds <= last["train_s"]:  # before its first evaluation: the rerun, planned for a later time, does not stand for it
-                first = min(curve, key=lambda p: p["train_s"])
-                cell = f"no evaluation at that time; its first, at {first['train_s']:.0f} s (step {first['step']}): {first['psnr']:.2f}"
-            elif again is not None:
-                cell = f"**{again['final']['psnr']:.2f}**: trained again for this wall-clock, {again['steps']} steps in {again['train_s']:.0f} s"
-            elif last is not None:
-                cell = f"{last['psnr']:.2f}: it ended earlier, at {last['train_s']:.0f} s (step {last['step']})"
-            else:
-                cell = "no evaluation at that time"
+            cell = one_model_at(results, name, seconds)["cell"]
             lines.append(f"| {names[(name, 'global')]} at the same wall-clock | - | {seconds:.0f} | {cell} |")
+    return lines
+
+
+def one_model_at(results: Dict[str, Dict[str, Any]], name: str, seconds: Optional[float] = None) -> Dict[str, Any]:
+    """What the one-model run ``name`` scored at a budget: ``psnr`` (None: no figure there), ``cell`` (the
+    figure and how it was read) and ``run`` (the variant whose run it was read from).
+
+    ``seconds`` None: equal total steps, its run's end. Else the wall-clock ``seconds``: its curve read
+    there; when it ended earlier, its rerun for the blocks' wall-clock (``<name>-wall-clock``) at its
+    end, else its own end (and the cell says so); before its first evaluation, no figure."""
+    result = results[name]
+    if seconds is None:
+        return {"psnr": result["final"]["psnr"], "cell": f"{result['final']['psnr']:.2f} ({result['steps']} steps)", "run": name}
+    again = results.get(name + WALL_CLOCK_SUFFIX)  # trained once more for the blocks' wall-clock (--match-wall-clock)
+    curve = result["curve"]
+    found = psnr_at(curve, seconds)
+    last = max(curve, key=lambda p: p["train_s"]) if curve else None
+    if found:
+        return {"psnr": found[0], "cell": f"{found[0]:.2f} (step {found[1]:.0f})", "run": name}
+    if last is not None and seconds <= last["train_s"]:  # before its first evaluation: the rerun, planned for a later time, does not stand for it
+        first = min(curve, key=lambda p: p["train_s"])
+        return {"psnr": None, "run": name,
+                "cell": f"no evaluation at that time; its first, at {first['train_s']:.0f} s (step {first['step']}): {first['psnr']:.2f}"}
+    if again is not None:
+        return {"psnr": again["final"]["psnr"], "run": name + WALL_CLOCK_SUFFIX,
+                "cell": f"**{again['final']['psnr']:.2f}**: trained again for this wall-clock, {again['steps']} steps in {again['train_s']:.0f} s"}
+    if last is not None:
+        return {"psnr": last["psnr"], "run": name, "cell": f"{last['psnr']:.2f}: it ended earlier, at {last['train_s']:.0f} s (step {last['step']})"}
+    return {"psnr": None, "run": name, "cell": "no evaluation at that time"}
+
+
+def one_model_baseline(results: Dict[str, Dict[str, Any]], size: str, seconds: Optional[float] = None) -> Optional[Dict[str, Any]]:
+    """The one-model baseline of table size ``size`` (``ngp-t`` or ``ngp-t2``) at a budget: of its runs with
+    each schedule (:data:`.variants.ONE_MODEL_SCHEDULES`) in ``results``, the one that scored the higher
+    held-out PSNR there (``seconds`` as in :func:`one_model_at`; on a tie the restart run, the default).
+    :func:`one_model_at`'s dict with ``variant`` and ``schedule`` added; None when no run has a figure there."""
+    scored = [{**one_model_at(results, variant, seconds), "variant": variant, "schedule": schedule}
+              for schedule, variant in ONE_MODEL_SCHEDULES[size].items() if variant in results]
+    scored = [s for s in scored if s["psnr"] is not None]
+    return max(scored, key=lambda s: s["psnr"]) if scored else None  # (max keeps the first of equals: restart)
+
+
+def blocks_against_one_model(results: Dict[str, Dict[str, Any]], table: List[Dict[str, Any]], log2_table: int = 19) -> List[str]:
+    """Markdown lines: every block variant (its own fusion) minus NGP_T and minus NGP_{T+2}, each the better of
+    its schedules (:func:`one_model_baseline`) at the same budget: equal total steps (every block variant
+    but ``auto-parallel*``) and equal wall-clock on K workers (every block variant)."""
+    own: Dict[str, Dict[str, Any]] = {}
+    for row in table:
+        if row.get("parallel_train_s"):
+            own.setdefault(row["variant"], row)  # a variant's first row is its run's own fusion
+    sizes = [size for size, schedules in ONE_MODEL_SCHEDULES.items() if any(v in results for v in schedules.values())]
+    if not own or not sizes:
+        return []
+    short = {"ngp-t": f"NGP_{log2_table}", "ngp-t2": f"NGP_{log2_table + 2}"}
+    header = " | ".join(f"{short[size]} (schedule, run read) | blocks - {short[size]}" for size in sizes)
+    lines = ["", "## The blocks against the one model", "",
+             "Each block variant with its own fusion against each table size's one model, the better of its two schedules "
+             f"at that budget: restart, {SCHEDULE_NAMES['restart']} (`ngp-t`, `ngp-t2`), or decay, {SCHEDULE_NAMES['decay']} "
+             f"(`ngp-t{DECAY_SUFFIX}`, `ngp-t2{DECAY_SUFFIX}`); both runs are in the table above.", "",
+             f"| blocks | fusion | budget | PSNR | {header} |", "|---|---|---|---|" + "---|---|" * len(sizes)]
+    for r in sorted(own.values(), key=lambda r: -r["psnr"]):
+        budgets = [(f"equal wall-clock, {r['parallel_train_s']:.0f} s", r["parallel_train_s"])]
+        if not r["variant"].startswith("auto-parallel"):  # (auto-parallel trains more steps: compared at equal wall-clock only)
+            budgets.insert(0, (f"equal total steps, {r['steps']}", None))
+        for budget, seconds in budgets:
+            cells = []
+            for size in sizes:
+                best = one_model_baseline(results, size, seconds)
+                cells += ([f"{best['psnr']:.2f} ({best['schedule']}, `{best['run']}`)", f"{r['psnr'] - best['psnr']:+.2f}"]
+                          if best else ["no figure at that budget", "-"])
+            lines.append(f"| {r['label']} | {r['fusion']} | {budget} | {r['psnr']:.2f} | " + " | ".join(cells) + " |")
     return lines
 
 
@@ -175,10 +239,12 @@ def decoder_width_used(config: BenchmarkConfig) -> int:
 
 
 def markdown(config: BenchmarkConfig, table: List[Dict[str, Any]], notes: Dict[str, str], command: str, machine: str,
-             results: Optional[Dict[str, Dict[str, Any]]] = None, decoder_width: Optional[int] = None, seed: Optional[int] = None) -> str:
+             results: Optional[Dict[str, Dict[str, Any]]] = None, decoder_width: Optional[int] = None, seed: Optional[int] = None,
+             heldout_view: Optional[Dict[str, Any]] = None) -> str:
     """results.md; ``decoder_width``: the width the run's variants trained with (None: a report written
     before the width was recorded, which says so); ``seed``: their ``machine.seed`` (None: a report of
-    runs from before the benchmark seeded them)."""
+    runs from before the benchmark seeded them); ``heldout_view``: the picture's view and panels
+    (:func:`.heldout_view.write_heldout_view`), None: no picture."""
     total = config.global_steps + config.num_blocks * config.block_steps
     parallel_budget = ""
     if any(name.startswith("auto-parallel") for name in (results or {})):
@@ -216,6 +282,10 @@ def markdown(config: BenchmarkConfig, table: List[Dict[str, Any]], notes: Dict[s
     if notes:
         lines += ["", *[f"- {name}: {note}" for name, note in notes.items()]]
     lines += equal_wall_clock(results or {}, table, config.log2_table)
+    lines += blocks_against_one_model(results or {}, table, config.log2_table)
+    if heldout_view:
+        captions = " | ".join(panel["caption"] for panel in heldout_view["panels"])
+        lines += ["", f"## Held-out view {heldout_view['view']}", "", captions, "", "![held-out view](heldout_view.png)"]
     lines += ["", "![PSNR vs training time](psnr_vs_time.png)", "", "![PSNR vs render time](psnr_vs_render_time.png)", "",
               "![PSNR vs parameters](psnr_vs_parameters.png)", ""]
     return "\n".join(lines)
@@ -284,17 +354,19 @@ def _write(output_dir: Path, config: BenchmarkConfig, report: Dict[str, Any]) ->
     """results.json, results.md and the plots of ``report``."""
     atomic_write_text(output_dir / "results.json", json.dumps(report, indent=2))
     atomic_write_text(output_dir / "results.md", markdown(config, report["rows"], report["notes"], report["command"], report["machine"],
-                                                          report["results"], report.get("decoder_width"), report["config"].get("seed")))
+                                                          report["results"], report.get("decoder_width"), report["config"].get("seed"),
+                                                          report.get("heldout_view")))
     plots(report["results"], report["rows"], output_dir, config.log2_table)
 
 
 def write_report(
     config: BenchmarkConfig, results: Dict[str, Dict[str, Any]], notes: Dict[str, str], command: str, started: float,
-    machine_probe: Optional[Dict[str, float]] = None,
+    machine_probe: Optional[Dict[str, float]] = None, heldout_view: Optional[Dict[str, Any]] = None,
 ) -> Dict[str, Any]:
     """The report of a benchmark run (``started``: ``time.time()`` when its variants started), written
     to ``config.output_dir``; returns it. ``machine_probe``: the machine's speed before and after the
-    runs (M points/s, :func:`.machine.hash_grid_speed`), shown on the report's machine line."""
+    runs (M points/s, :func:`.machine.hash_grid_speed`), shown on the report's machine line;
+    ``heldout_view``: the held-out picture's view and panels (heldout_view.png), None: none."""
     table = rows(results, notes, config.log2_table)
     machine = describe_machine()
     if machine_probe is not None:
@@ -303,7 +375,7 @@ def write_report(
     report = {
         "command": command, "machine": machine, "config": {k: str(v) if isinstance(v, Path) else v for k, v in asdict(config).items()},
         "notes": notes, "rows": table, "results": results, "wall_clock_s": time.time() - started,
-        "decoder_width": decoder_width_used(config), "machine_probe_mpts_per_s": machine_probe,
+        "decoder_width": decoder_width_used(config), "machine_probe_mpts_per_s": machine_probe, "heldout_view": heldout_view,
     }
     _write(config.output_dir, config, report)
     return report

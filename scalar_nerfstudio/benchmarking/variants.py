@@ -5,6 +5,11 @@ Variants (same scene, same machine, same run; each trains in its own process):
 * ``ngp-t`` / ``ngp-t2``: one model (the paper's NGP_T / NGP_{T+2}), ``G + K B`` steps, with the blocks'
   table 2^T / a table 4x as large, 2^(T+2) (``--log2-table T``). Their former names ``ngp19`` /
   ``ngp21`` (after the paper's default T = 19) are accepted everywhere (:data:`VARIANT_ALIASES`).
+  They follow the one-model learning-rate schedule of the defaults (``--pipeline.one-model-restart``:
+  hold, then restart at a share of the run).
+* ``ngp-t-decay`` / ``ngp-t2-decay``: the same one models with one warm-up and decay over the whole run
+  (``--pipeline.one-model-restart 0``). The report compares the blocks with the better of the two
+  schedules of each table size (:data:`ONE_MODEL_SCHEDULES`).
 * ``global``: the SCALAR-NeRF global phase (``G`` steps, table 2^T). The block variants below all
   start from this one trained global model (its time is counted in theirs), as in the paper.
 * ``scalar``: the paper's: K fresh blocks (``--pipeline.block-init fresh``) of ``B`` steps each,
@@ -41,11 +46,12 @@ compares at equal wall-clock with K workers: a block variant's time with its blo
 parallel (``G``'s time + its slowest block's) against the NGP curves at that time. The equal-steps
 variants do the same total work as NGP_T, so on K workers they finish early; ``auto-parallel`` is the
 budget where the K workers buy K times the block steps in NGP_T's wall-clock. When a one-model run
-(``ngp-t``, ``ngp-t2``) ends more than :data:`WALL_CLOCK_TOLERANCE` before the longest such wall-clock,
-it is trained once more, from the start, for as many steps as fit in that wall-clock at its first
-run's pace (``ngp-t-wall-clock``: see :func:`wall_clock_variants`): a one-model run's learning rate decays
-over its own steps, so its curve cannot be read past its end, and its end is not what it reaches in
-the blocks' time. A run's pace changes with its length and the machine's state, so when that run
+(``ngp-t``, ``ngp-t2`` and their ``-decay`` runs) ends more than :data:`WALL_CLOCK_TOLERANCE` before
+the longest such wall-clock, it is trained once more, from the start, for as many steps as fit in
+that wall-clock at its first run's pace (``ngp-t-wall-clock``, ``ngp-t-decay-wall-clock``, ...: see
+:func:`wall_clock_variants`): a one-model run's learning-rate schedule spans its own steps, so its
+curve cannot be read past its end, and its end is not what it reaches in the blocks' time. A run's
+pace changes with its length and the machine's state, so when that run
 ends more than the tolerance away from the wall-clock, it is planned again from its own pace
 (``ngp-t-wall-clock-2``, ...; :func:`wall_clock_retry`), up to ``--wall-clock-tries`` runs, and the
 run that ended nearest the wall-clock is the one read.
@@ -59,12 +65,20 @@ from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
 
 __all__ = [
-    "ONE_MODEL_VARIANTS", "VARIANTS", "VARIANT_ALIASES", "WALL_CLOCK_SUFFIX", "canonical_variant", "former_variant_name", "WALL_CLOCK_TOLERANCE", "BenchmarkConfig", "Variant", "auto_k", "blocks_wall_clock_s", "check_options",
-    "nearest_to_wall_clock", "parallel_block_steps", "plan", "use_quick_budgets", "wall_clock_retry", "wall_clock_variants",
+    "DECAY_SUFFIX", "ONE_MODEL_SCHEDULES", "ONE_MODEL_VARIANTS", "VARIANTS", "VARIANT_ALIASES", "WALL_CLOCK_SUFFIX", "canonical_variant", "former_variant_name", "WALL_CLOCK_TOLERANCE", "BenchmarkConfig", "Variant", "auto_k", "blocks_wall_clock_s", "check_options",
+    "nearest_to_wall_clock", "one_model_schedule", "parallel_block_steps", "plan", "use_quick_budgets", "wall_clock_retry", "wall_clock_variants",
 ]
 
-#: The one-model variants: NGP_T (one model, the blocks' table 2^T) and NGP_{T+2} (one model, a 4x table).
-ONE_MODEL_VARIANTS: Tuple[str, ...] = ("ngp-t", "ngp-t2")
+#: A one-model variant with one warm-up and decay over its whole run is named ``<variant>DECAY_SUFFIX``.
+DECAY_SUFFIX = "-decay"
+#: The one-model runs of each table size (NGP_T: the blocks' table 2^T, NGP_{T+2}: a 4x table), by
+#: learning-rate schedule: ``restart`` (the one-model default, ``--pipeline.one-model-restart``) and
+#: ``decay`` (``--pipeline.one-model-restart 0``).
+ONE_MODEL_SCHEDULES: Dict[str, Dict[str, str]] = {
+    name: {"restart": name, "decay": name + DECAY_SUFFIX} for name in ("ngp-t", "ngp-t2")
+}
+#: The one-model variants: every table size with every schedule.
+ONE_MODEL_VARIANTS: Tuple[str, ...] = tuple(v for schedules in ONE_MODEL_SCHEDULES.values() for v in schedules.values())
 VARIANTS: Tuple[str, ...] = (
     *ONE_MODEL_VARIANTS, "scalar", "scalar-init-global", "scalar-fitted", "scalar-wo-sd", "scalar-wo-ft", "scalar-s1.0", "scalar-autocap", "auto", "auto-fitted", "auto-parallel", "auto-parallel-fitted", "nerfacto",
 )
@@ -76,6 +90,16 @@ WALL_CLOCK_TOLERANCE = 0.03
 #: Former variant names, still accepted (``--variants``, and run folders of earlier benchmarks read by
 #: ``--resume``): former name -> name.
 VARIANT_ALIASES: Dict[str, str] = {"ngp19": "ngp-t", "ngp21": "ngp-t2"}
+
+
+def one_model_schedule(name: str) -> Tuple[str, str]:
+    """(table size, schedule) of a one-model variant (:data:`ONE_MODEL_SCHEDULES`): ``ngp-t2-decay`` ->
+    ``("ngp-t2", "decay")``. A name that is not one raises KeyError."""
+    for size, schedules in ONE_MODEL_SCHEDULES.items():
+        for schedule, variant in schedules.items():
+            if variant == name:
+                return size, schedule
+    raise KeyError(f"{name!r} is not a one-model variant (one of {list(ONE_MODEL_VARIANTS)})")
 
 
 def canonical_variant(name: str) -> str:
@@ -127,11 +151,13 @@ class BenchmarkConfig:
     """Fusion modes every block variant is evaluated with at its end, in this order (the first is the one its
     run renders with); default: each variant's own list. Each mode renders every held-out view once more."""
     match_wall_clock: bool = True
-    """Train a one-model run (NGP_T, NGP_{T+2}) that ended before the blocks' wall-clock on K workers once more,
-    for that wall-clock (``<variant>-wall-clock``). Off: the table reads the shorter run's end and says so."""
+    """Train a one-model run (NGP_T, NGP_{T+2}, either schedule) that ended before the blocks' wall-clock on K
+    workers once more, for that wall-clock (``<variant>-wall-clock``). Off: the table reads the shorter run's end."""
     wall_clock_tries: int = 3
     """Most runs of each one-model variant for the blocks' wall-clock: while one ends more than 3 % away from
     it, the next is planned from that run's pace; the run that ended nearest it is read."""
+    heldout_view: int = 0
+    """Which held-out view (index among the eval images) heldout_view.png shows, rendered by each run shown."""
     resume: bool = False
     """Reuse each variant's finished run in output_dir/runs whose spec is the one this command writes (the code
     and the scene's files are not compared): only what is missing or changed is trained."""
@@ -140,7 +166,7 @@ class BenchmarkConfig:
     another seed repeats the comparison from other initial weights and rays."""
     variants: Tuple[str, ...] = VARIANTS
     """Which variants to run (the block variants add the global phase they start from). ``ngp-t``: one model
-    with the blocks' table 2^T; ``ngp-t2``: one model with a 4x table; former names ngp19 / ngp21 accepted."""
+    with the blocks' table 2^T; ``ngp-t2``: a 4x table; ``-decay``: one decay over the run; ngp19 / ngp21 accepted."""
     quick: bool = False
     """Synthetic 24-image scene, tiny models, a few steps: checks the harness end to end in about a minute."""
     verbose: bool = False
@@ -180,6 +206,8 @@ def check_options(config: BenchmarkConfig) -> None:
         raise SystemExit(f"scalar-nerf-benchmark: --parallel-block-steps {config.parallel_block_steps}: each block needs at least 1 step")
     if config.wall_clock_tries < 1:
         raise SystemExit(f"scalar-nerf-benchmark: --wall-clock-tries {config.wall_clock_tries}: at least 1 run is needed")
+    if config.heldout_view < 0:
+        raise SystemExit(f"scalar-nerf-benchmark: --heldout-view {config.heldout_view}: a view index is 0 or more")
     if config.decoder_width is not None and config.decoder_width < 1:
         raise SystemExit(f"scalar-nerf-benchmark: --decoder-width {config.decoder_width}: a decoder layer needs at least 1 unit")
     unknown = [v for v in config.variants if canonical_variant(v) not in VARIANTS]
@@ -248,10 +276,11 @@ def plan(config: BenchmarkConfig) -> Tuple[List[Variant], Dict[str, str]]:
     if any(v.startswith(("scalar", "auto")) or v == "nerfacto" for v in wanted):
         out.append(Variant("global", "scalar-nerf", {**common, "pipeline.num_blocks": k, "pipeline.train_blocks": False, "pipeline.global_steps": g}))
     for name in wanted:
-        if name == "ngp-t":
-            out.append(Variant(name, "scalar-nerf", single))
-        elif name == "ngp-t2":
-            out.append(Variant(name, "scalar-nerf", {**single, "pipeline.model.field.log2_hashmap_size": log2_t2}))
+        if name in ONE_MODEL_VARIANTS:
+            size, schedule = one_model_schedule(name)
+            table = {"pipeline.model.field.log2_hashmap_size": log2_t2} if size == "ngp-t2" else {}
+            decay = {"pipeline.one_model_restart": 0.0} if schedule == "decay" else {}
+            out.append(Variant(name, "scalar-nerf", {**single, **table, **decay}))
         elif name == "scalar":
             out.append(Variant(name, "scalar-nerf", paper,
                                ["global", "surface", "idw", "nearest", "global-only"], base="global"))
@@ -329,9 +358,10 @@ def wall_clock_variants(
     reads a run as long as the blocks' (``--match-wall-clock``).
 
     The blocks' wall-clock is :func:`blocks_wall_clock_s`. A one-model variant of ``variants``
-    (``ngp-t``, ``ngp-t2``) whose run in ``results`` ended more than :data:`WALL_CLOCK_TOLERANCE` of it
+    (:data:`ONE_MODEL_VARIANTS`: ``ngp-t``, ``ngp-t2`` and their ``-decay`` runs) whose run in
+    ``results`` ended more than :data:`WALL_CLOCK_TOLERANCE` of it
     earlier gets a copy named ``<name>-wall-clock`` that trains ``ceil(wall-clock x steps / train_s)``
-    steps, its first run's pace, from the start: its learning rate then decays over the longer run. It is
+    steps, its first run's pace, from the start: its learning-rate schedule then spans the longer run. It is
     evaluated at its end only. When it too ends away from the wall-clock, :func:`wall_clock_retry` plans
     the next run."""
     seconds = blocks_wall_clock_s(results)

@@ -4,7 +4,8 @@
     scalar-nerf-benchmark --quick --output-dir /tmp/bench     # synthetic scene, a minute: checks the harness
 
 The variants (one model with the blocks' table, ``ngp-t``, and with a 4x table, ``ngp-t2``: the
-paper's NGP_T / NGP_{T+2}; SCALAR-NeRF and its ablations with several fusions, automatic K and
+paper's NGP_T / NGP_{T+2}, each with the one-model default schedule and with one decay over the run,
+``-decay``; SCALAR-NeRF and its ablations with several fusions, automatic K and
 capacity; nerfacto) are listed in :mod:`scalar_nerfstudio.benchmarking.variants`;
 each trains in its own process, on the same scene and machine, in the same run.
 
@@ -12,7 +13,9 @@ Equal budgets: every SCALAR/NGP variant trains ``G + K B`` steps of the same ray
 trains for the same wall-clock as ``scalar``. Training time excludes evaluation. PSNR / SSIM (and
 LPIPS when its weights are available offline) are measured on the eval split (every 8th image)
 every ``eval_every`` steps. Written to ``--output-dir``: results.json, results.md, and
-psnr_vs_time.png, psnr_vs_render_time.png, psnr_vs_parameters.png. The machine line of the report
+psnr_vs_time.png, psnr_vs_render_time.png, psnr_vs_parameters.png, and heldout_view.png (one
+held-out view: truth, one model, blocks, block colours; :mod:`scalar_nerfstudio.benchmarking.heldout_view`).
+The blocks are compared with the better schedule of each one model. The machine line of the report
 carries the machine's speed before and after the runs (:mod:`scalar_nerfstudio.benchmarking.machine`).
 """
 
@@ -24,6 +27,7 @@ from typing import Any, Dict
 
 import tyro
 
+from scalar_nerfstudio.benchmarking.heldout_view import write_heldout_view
 from scalar_nerfstudio.benchmarking.machine import hash_grid_speed
 from scalar_nerfstudio.benchmarking.report import results_table_text, rewrite_report, write_report
 from scalar_nerfstudio.benchmarking.schedule import prepare, run_variants
@@ -46,9 +50,13 @@ def main(config: BenchmarkConfig) -> Dict[str, Any]:
     started = time.time()
     results = run_variants(config, variants, notes)
     machine_probe["after"] = hash_grid_speed(**probe_size)
-    report = write_report(config, results, notes, command, started, machine_probe)
+    report = write_report(config, results, notes, command, started, machine_probe)  # first without the picture: a failed render loses no table
+    view = write_heldout_view(config, results)
+    if view is not None:
+        report = write_report(config, results, notes, command, started, machine_probe, heldout_view=view)
     print(results_table_text(output_dir))
-    print(f"written: {output_dir / 'results.md'}, results.json and 3 PNG plots ({(time.time() - started) / 60:.1f} min)")
+    picture = f" and {view['file']}" if view is not None else ""
+    print(f"written: {output_dir / 'results.md'}, results.json, 3 PNG plots{picture} ({(time.time() - started) / 60:.1f} min)")
     return report
 
 
