@@ -353,9 +353,10 @@ def _rpy(rotation: np.ndarray) -> Tuple[float, float, float]:
 
 @pytest.mark.slow
 def test_ns_export_pointcloud_of_a_fused_run_lies_on_the_courtyard(tmp_path: Path) -> None:
-    """``ns-export pointcloud`` (nerfstudio's own command, default ``--normal-method model_output``) of a
-    global + 2-block run: one merged cloud of the fused render, near the scene's known surfaces, with
-    unit normals that on the ground mostly point along its normal."""
+    """``ns-export pointcloud --save-world-frame True`` (nerfstudio's own command, default
+    ``--normal-method model_output``) of a global + 2-block run: one merged cloud of the fused render,
+    in the capture's own frame (the dataparser's transform and scale undone), near the scene's known
+    surfaces there, with unit normals that on the ground mostly point along its normal."""
     import open3d as o3d
     import torch as _torch
 
@@ -377,6 +378,7 @@ def test_ns_export_pointcloud_of_a_fused_run_lies_on_the_courtyard(tmp_path: Pat
     exported = subprocess.run(
         [sys.executable, "-m", "nerfstudio.scripts.exporter", "pointcloud", "--load-config", str(run / "config.yml"),
          "--output-dir", str(tmp_path / "export"), "--num-points", "6000", "--remove-outliers", "False", "--num-rays-per-batch", "8192",
+         "--save-world-frame", "True",
          "--obb-center", *map(str, centre), "--obb-rotation", *map(str, _rpy(rotation)), "--obb-scale", *map(str, scale * (COURTYARD_MAX - COURTYARD_MIN))],
         capture_output=True, text=True, timeout=600,
     )
@@ -386,8 +388,8 @@ def test_ns_export_pointcloud_of_a_fused_run_lies_on_the_courtyard(tmp_path: Pat
     assert len(points) >= 6000 and cloud.has_normals() and normals.shape == points.shape
     assert np.isfinite(normals).all() and np.allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-3)
 
-    world_points = (points / scale - translation) @ rotation  # R^T (p' / s - t), as row vectors
-    world_normals = normals @ rotation
+    world_points = points  # already in the scene's frame (--save-world-frame); the normals are not
+    world_normals = normals @ rotation  # R^T n, as row vectors
     distance, surface_normal, surface = _surface_distance_and_normal(world_points)
     random_points = np.random.default_rng(0).uniform(COURTYARD_MIN, COURTYARD_MAX, size=(len(points), 3))
     chance = float(np.median(_surface_distance_and_normal(random_points)[0]))

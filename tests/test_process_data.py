@@ -17,8 +17,6 @@ import io
 import json
 import math
 import shutil
-import subprocess
-import sys
 import time
 from pathlib import Path
 from typing import Dict, Tuple
@@ -520,73 +518,3 @@ def test_export_frame_errors(tmp_path) -> None:
         map_file(tmp_path / "mesh.ply", tmp_path / "o.ply", read_transform(tmp_path / "run" / "dataparser_transforms.json"))
     with pytest.raises(ProcessDataError, match="must end in .ply"):
         map_file(tmp_path / "mesh.ply", tmp_path / "o.obj", read_transform(tmp_path / "run" / "dataparser_transforms.json"))
-
-
-# ------------------------------------------------------------- ns-export on a run of the capture
-
-
-def exported_points_against_sparse(scene: Path, run: Path, export_dir: Path) -> Dict[str, float]:
-    """``ns-export pointcloud --save-world-frame True`` of ``run`` (trained on ``scene``, a
-    process-data scene) and, mapped with scalar-nerf-export-frame, the same export in the model
-    frame: both against the scene's sparse SfM points, in the capture's frame.
-
-    Returns, in the capture's units: the median distance from each exported point to its nearest
-    sparse point for each route (``world_median``, ``mapped_median``), the sparse points' own median
-    nearest-neighbour spacing, the distance between each route's centroid and the sparse points'
-    (``*_centroid_offset``) and between the two routes' centroids (``routes_centroid_offset``), all
-    offsets relative to the sparse points' ``extent`` (the diagonal of their bounding box).
-    """
-    import open3d as o3d
-
-    def export(directory: Path, world: bool) -> np.ndarray:
-        done = subprocess.run(
-            [sys.executable, "-m", "nerfstudio.scripts.exporter", "pointcloud", "--load-config", str(run / "config.yml"),
-             "--output-dir", str(directory), "--num-points", "3000", "--remove-outliers", "True", "--save-world-frame", str(world)],
-            capture_output=True, text=True, timeout=600,
-        )
-        assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
-        return np.asarray(o3d.io.read_point_cloud(str(directory / "point_cloud.ply")).points)
-
-    sparse = np.asarray(o3d.io.read_point_cloud(str(scene / "sparse_pc.ply")).points)
-    tree = o3d.geometry.KDTreeFlann(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(sparse)))
-
-    def nearest(points: np.ndarray) -> np.ndarray:
-        return np.array([math.sqrt(tree.search_knn_vector_3d(p, 1)[2][0]) for p in points])
-
-    world = export(export_dir / "world", True)
-    export(export_dir / "model", False)
-    assert export_frame_cli.main(["--load-config", str(run / "config.yml"), "--input", str(export_dir / "model" / "point_cloud.ply"), "--output", str(export_dir / "mapped.ply")]) == 0
-    mapped = np.asarray(o3d.io.read_point_cloud(str(export_dir / "mapped.ply")).points)
-    spacing = np.array([math.sqrt(tree.search_knn_vector_3d(p, 2)[2][1]) for p in sparse])
-    extent = float(np.linalg.norm(sparse.max(axis=0) - sparse.min(axis=0)))
-    return {
-        "world_median": float(np.median(nearest(world))),
-        "mapped_median": float(np.median(nearest(mapped))),
-        "sparse_spacing": float(np.median(spacing)),
-        "world_centroid_offset": float(np.linalg.norm(world.mean(axis=0) - sparse.mean(axis=0)) / extent),
-        "mapped_centroid_offset": float(np.linalg.norm(mapped.mean(axis=0) - sparse.mean(axis=0)) / extent),
-        "routes_centroid_offset": float(np.linalg.norm(mapped.mean(axis=0) - world.mean(axis=0)) / extent),
-        "extent": extent,
-    }
-
-
-@pytest.mark.slow
-@needs_pycolmap
-def test_ns_export_in_the_capture_frame_lies_on_the_sparse_points(processed, tmp_path) -> None:
-    """A tiny scalar-nerf run (conftest's TINY: 40 global steps, 2 blocks of 15) on the processed
-    capture, exported with ``--save-world-frame True`` and through scalar-nerf-export-frame: the two
-    routes agree and both clouds lie in the capture's frame, around the sparse points. A run this
-    short is still hazy, so the bounds against the sparse points are loose (not measured yet: the
-    helper that wrote this test could not train); the route agreement is the frame check."""
-    from conftest import TINY, ns_train_command, run_dirs
-
-    scene = processed[0]
-    trained = subprocess.run(ns_train_command(scene, tmp_path / "outputs", *TINY), capture_output=True, text=True, timeout=900)
-    assert trained.returncode == 0, trained.stdout[-3000:] + trained.stderr[-3000:]
-    (run,) = run_dirs(tmp_path / "outputs")
-    figures = exported_points_against_sparse(scene, run, tmp_path / "export")
-    summary = ", ".join(f"{k} {v:.3f}" for k, v in figures.items())
-    assert figures["routes_centroid_offset"] < 0.05, summary
-    assert figures["world_centroid_offset"] < 0.25 and figures["mapped_centroid_offset"] < 0.25, summary
-    assert figures["world_median"] < 0.1 * figures["extent"] and figures["mapped_median"] < 0.1 * figures["extent"], summary
-    print(summary)
