@@ -344,6 +344,14 @@ def test_spatial_matching_without_gps_is_refused(tmp_path) -> None:
     assert not (tmp_path / "scene").exists()
 
 
+def test_an_output_that_cannot_be_written_is_an_error_not_a_traceback(tmp_path) -> None:
+    _small_photos(tmp_path / "photos")
+    (tmp_path / "a-file").write_text("")
+    code, _, err = _run("--images", str(tmp_path / "photos"), "--output", str(tmp_path / "a-file" / "scene"))
+    _refused(code, err, "a-file", "not written")
+    assert "Traceback" not in err
+
+
 def test_an_output_folder_with_other_files_or_holding_the_photos_is_refused(tmp_path) -> None:
     _small_photos(tmp_path / "photos")
     (tmp_path / "busy").mkdir()

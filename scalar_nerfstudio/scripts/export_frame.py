@@ -47,6 +47,9 @@ def main(argv: Optional[List[str]] = None) -> int:
     except ProcessDataError as error:
         print(f"{PROG}: error: {error}", file=sys.stderr)
         return 1
+    except OSError as error:  # an unwritable --output, a full disk
+        print(f"{PROG}: error: {error.strerror or error} ({error.filename or args.output}); nothing was written", file=sys.stderr)
+        return 1
     print(f"wrote {args.output} ({count} vertices mapped to the capture's frame with {transforms})")
     return 0
 

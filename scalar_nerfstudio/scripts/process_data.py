@@ -186,6 +186,9 @@ def main(argv: Optional[List[str]] = None) -> int:
     except ProcessDataError as error:
         print(f"{PROG}: error: {error}", file=sys.stderr)
         return 1
+    except OSError as error:  # an unwritable --output, a full disk: nothing half-written is published
+        print(f"{PROG}: error: {error.strerror or error} ({error.filename or args.output}); the scene was not written", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print(f"{PROG}: interrupted; run the same command again to resume", file=sys.stderr)
         return 130

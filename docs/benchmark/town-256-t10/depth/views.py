@@ -9,7 +9,7 @@ import numpy as np, torch
 from pathlib import Path
 from PIL import Image
 from nerfstudio.utils.eval_utils import eval_setup
-from scalar_nerfstudio.data.town_scene import read_depth_png
+from scalar_nerfstudio.scenes.town import read_depth_png
 _, p, _, _ = eval_setup(Path(sys.argv[1]), test_mode="test")
 scale = p.datamanager.train_dataparser_outputs.dataparser_scale
 ds = p.datamanager.eval_dataset if sys.argv[3] == "eval" else p.datamanager.train_dataset
