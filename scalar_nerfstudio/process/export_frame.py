@@ -11,15 +11,15 @@ Normals turn with the points and stay unit length. numpy and plyfile only.
 
 from __future__ import annotations
 
+import io
 import json
-import os
-import tempfile
 from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 from plyfile import PlyData, PlyParseError  # plyfile comes with viser, a dependency of the project
 
+from scalar_nerfstudio.atomic_io import atomic_write_bytes, atomic_write_text
 from scalar_nerfstudio.process.errors import ProcessDataError
 
 TRANSFORMS_NAME = "dataparser_transforms.json"
@@ -76,13 +76,6 @@ def read_transform(path: Path) -> DataparserTransform:
     return DataparserTransform(transform, scale)
 
 
-def _atomic_target(output: Path):
-    output.parent.mkdir(parents=True, exist_ok=True)
-    fd, name = tempfile.mkstemp(prefix=f".{output.name}.", suffix=".tmp", dir=output.parent)
-    os.close(fd)
-    return Path(name)
-
-
 def map_ply(source: Path, output: Path, transform: DataparserTransform) -> int:
     """Write ``source`` (.ply, ascii or binary, any other elements and properties kept) with its
     vertices' x, y, z (and nx, ny, nz when present) in the capture frame. Returns the vertex count."""
@@ -103,12 +96,9 @@ def map_ply(source: Path, output: Path, transform: DataparserTransform) -> int:
         normals = transform.normals_to_capture(np.stack([data["nx"], data["ny"], data["nz"]], axis=1))
         for k, axis in enumerate(("nx", "ny", "nz")):
             data[axis] = normals[:, k].astype(data[axis].dtype)
-    temporary = _atomic_target(Path(output))
-    try:
-        ply.write(str(temporary))
-        os.replace(temporary, output)
-    finally:
-        temporary.unlink(missing_ok=True)
+    buffer = io.BytesIO()
+    ply.write(buffer)
+    atomic_write_bytes(Path(output), buffer.getvalue())
     return len(points)
 
 
@@ -134,12 +124,7 @@ def map_obj(source: Path, output: Path, transform: DataparserTransform) -> int:
         mapped = transform.to_capture(values) if kind == "v" else transform.normals_to_capture(values)
         for (index, _, rest), row in zip(entries, mapped):
             lines[index] = " ".join([kind, *(f"{v:.9g}" for v in row), *rest]) + "\n"
-    temporary = _atomic_target(Path(output))
-    try:
-        temporary.write_text("".join(lines))
-        os.replace(temporary, output)
-    finally:
-        temporary.unlink(missing_ok=True)
+    atomic_write_text(Path(output), "".join(lines))
     return len(kinds["v"])
 
 
