@@ -1,8 +1,18 @@
-"""Shared fixtures: the real scenes beside the repo and one short trained run reused by several tests."""
+"""Shared fixtures: the real scenes beside the repo and the short trained runs every verb, fusion,
+viewer, export and assembly test reuses.
+
+The suite runs on several pytest-xdist workers (README: ``pytest -n auto``). A session fixture that
+trains is built once for all of them (:func:`built_once`: the first worker to ask builds it under a
+file lock, the others wait and read its result); the runs it returns are read-only for the tests
+(a test that changes a run copies it first). Each worker's torch, and every command it starts, uses
+one thread per worker so that the workers do not fight over the cores.
+"""
 
 from __future__ import annotations
 
+import json
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -10,10 +20,11 @@ import sys
 import time
 import urllib.request
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Optional
+from typing import Any, Callable, Dict, List, Optional, TypeVar
 
 import pytest
 import torch
+from filelock import FileLock
 from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.data.scene_box import SceneBox
 
@@ -22,12 +33,69 @@ from scalar_nerfstudio.runs import latest_checkpoint_step
 from scalar_nerfstudio.fields.scalar_field import ScalarFieldConfig
 from scalar_nerfstudio.models.scalar_model import ScalarModel, ScalarModelConfig
 
+#: This pytest-xdist worker's name ("gw0", ...); None when pytest runs without workers.
+XDIST_WORKER = os.environ.get("PYTEST_XDIST_WORKER")
+if XDIST_WORKER is not None:
+    # One thread per worker, for this process and every command it starts: two workers of 2 threads
+    # each on 2 cores spin-wait for each other at every OpenMP barrier.
+    _threads = os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")
+    _cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    os.environ.setdefault("OMP_NUM_THREADS", str(max(1, _cores // max(1, int(_threads)))))
+    os.environ.setdefault("MKL_NUM_THREADS", os.environ["OMP_NUM_THREADS"])
+    torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
+
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
 CASTLE = SHARED_DATA / "castle-P30"
 
 # A short run that fits the suite's budget on 2 cores (see README "Tests").
 TRAIN_STEPS = int(os.environ.get("SCALAR_TEST_TRAIN_STEPS", "200"))
+
+
+T = TypeVar("T")
+
+#: Fixtures that hand a test a trained run: a test that asks for one is marked slow (it trains, or
+#: waits for the run to be trained) whether or not it says so itself.
+TRAINED_RUN_FIXTURES = frozenset({"full_run", "trained_castle_run", "auto_runs", "global_run"})
+
+
+@pytest.hookimpl(tryfirst=True)  # before ``-m "not slow"`` deselects
+def pytest_collection_modifyitems(config: pytest.Config, items: List[pytest.Item]) -> None:
+    """Mark the tests of trained runs slow, and put the files with slow tests first: the workers
+    (``pytest -n auto --dist loadfile``) take files in this order, so the long ones start at once
+    and the short ones fill the gaps at the end."""
+    for item in items:
+        if TRAINED_RUN_FIXTURES & set(getattr(item, "fixturenames", ())):
+            item.add_marker(pytest.mark.slow)
+    slow_files = {item.path for item in items if item.get_closest_marker("slow") is not None}
+    items.sort(key=lambda item: item.path not in slow_files)  # stable: the order inside a file is kept
+
+
+def built_once(tmp_path_factory: pytest.TempPathFactory, name: str, build: Callable[[Path], T]) -> T:
+    """``build(folder)`` run once per test session, whichever xdist worker asks first; the others
+    wait for it and get the same result. ``build`` returns a Path or a dict of Paths (stored as JSON
+    beside the folder). A build that failed fails every later request with its message, at once.
+    """
+    base = tmp_path_factory.getbasetemp()
+    if XDIST_WORKER is not None:
+        base = base.parent  # shared by the workers of this session
+    folder, result_file, failure_file = base / name, base / f"{name}.result.json", base / f"{name}.failed"
+    with FileLock(str(base / f"{name}.lock")):
+        if failure_file.exists():
+            pytest.fail(f"building the shared {name!r} failed in another worker:\n{failure_file.read_text()}")
+        if not result_file.exists():
+            if folder.exists():
+                shutil.rmtree(folder)
+            folder.mkdir(parents=True)
+            try:
+                result = build(folder)
+            except BaseException as exc:
+                failure_file.write_text(f"{type(exc).__name__}: {exc}"[-6000:])
+                raise
+            encoded = {k: str(v) for k, v in result.items()} if isinstance(result, dict) else str(result)
+            result_file.write_text(json.dumps(encoded))
+        stored = json.loads(result_file.read_text())
+    return {k: Path(v) for k, v in stored.items()} if isinstance(stored, dict) else Path(stored)  # type: ignore[return-value]
 
 
 #: A field small enough for unit tests: 4 hash levels of 2^12 rows, finest resolution 128.
@@ -58,15 +126,17 @@ def free_port() -> int:
         return sock.getsockname()[1]
 
 
-def ns_train_command(data: Path, output_dir: Path, *extra: str, method: str = "scalar-nerf") -> List[str]:
-    """``ns-train METHOD`` as a user runs it, with a private viewer port, ending when training ends."""
+def ns_train_command(data: Path, output_dir: Path, *extra: str, method: str = "scalar-nerf", step_log: bool = False) -> List[str]:
+    """``ns-train METHOD`` as a user runs it, with a private viewer port, ending when training ends;
+    nerfstudio's step log (its default) only with ``step_log``, every 5 steps."""
+    log = ["--logging.steps-per-log", "5"] if step_log else ["--logging.local-writer.enable", "False"]
     return [
         sys.executable, "-m", "nerfstudio.scripts.train", method,
         "--data", str(data),
         "--output-dir", str(output_dir),
         "--viewer.websocket-port", str(free_port()),
         "--viewer.quit-on-train-completion", "True",
-        "--logging.local-writer.enable", "False",
+        *log,
         *extra,
     ]
 
@@ -106,7 +176,8 @@ def sigkill_after_checkpoint(process: subprocess.Popen, output_dir: Path, min_st
 def viewer_page(config: Path, timeout: float = 300.0) -> str:
     """Start ``ns-viewer`` on a run's config.yml as a user does, fetch its page, stop it; returns the page.
 
-    Fails the calling test if the viewer exits or serves nothing within ``timeout`` seconds."""
+    Fails the calling test if the viewer exits, serves nothing within ``timeout`` seconds, or logs a
+    traceback or a checkpoint that does not fit its model while loading the run."""
     port = free_port()
     viewer = subprocess.Popen(
         [sys.executable, "-m", "nerfstudio.scripts.viewer.run_viewer", "--load-config", str(config), "--viewer.websocket-port", str(port)],
@@ -123,10 +194,12 @@ def viewer_page(config: Path, timeout: float = 300.0) -> str:
                 time.sleep(1.0)
         assert viewer.poll() is None, viewer.stdout.read()[-3000:] if viewer.stdout else ""
         assert page is not None, f"the viewer served nothing on port {port} within {timeout:.0f} s"
-        return page
     finally:
         viewer.terminate()
         viewer.wait(timeout=60)
+    log = viewer.stdout.read() if viewer.stdout else ""
+    assert "Traceback" not in log and "size mismatch" not in log, log[-3000:]
+    return page
 
 
 def castle_args() -> List[str]:
@@ -141,12 +214,15 @@ def trained_castle_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """Train the global model on castle-P30 (downscale 4) for TRAIN_STEPS steps; returns the run folder."""
     if not CASTLE.is_dir():
         pytest.skip(f"castle-P30 not found at {CASTLE}")
-    output_dir = tmp_path_factory.mktemp("castle_run")
-    command = ns_train_command(CASTLE, output_dir, "--max-num-iterations", str(TRAIN_STEPS), "--steps-per-save", str(TRAIN_STEPS), *castle_args())
-    result = subprocess.run(command, capture_output=True, text=True, timeout=1200)
-    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
-    (run,) = run_dirs(output_dir)
-    return run
+
+    def train(output_dir: Path) -> Path:
+        command = ns_train_command(CASTLE, output_dir, "--max-num-iterations", str(TRAIN_STEPS), "--steps-per-save", str(TRAIN_STEPS), *castle_args())
+        result = subprocess.run(command, capture_output=True, text=True, timeout=1200)
+        assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+        (run,) = run_dirs(output_dir)
+        return run
+
+    return built_once(tmp_path_factory, "castle_run", train)
 
 
 # ------------------------------------------------- a tiny run through every phase (blocks, fusion)
@@ -168,20 +244,31 @@ TINY = [
 
 @pytest.fixture(scope="session")
 def scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    folder = tmp_path_factory.mktemp("courtyard")
-    write_scene(folder, num_images=24, width=96, height=72)
-    return folder
+    def write(folder: Path) -> Path:
+        write_scene(folder, num_images=24, width=96, height=72)
+        return folder
+
+    return built_once(tmp_path_factory, "courtyard", write)
 
 
 @pytest.fixture(scope="session")
 def full_run(scene: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """``ns-train scalar-nerf`` through the global phase and both blocks."""
-    output_dir = tmp_path_factory.mktemp("full_run")
-    result = subprocess.run(ns_train_command(scene, output_dir, *TINY), capture_output=True, text=True, timeout=900)
-    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
-    (run,) = run_dirs(output_dir)
-    assert "phases: global: steps 0-39, block 0: steps 40-54, block 1: steps 55-69" in " ".join(result.stdout.split())
-    return run
+    """``ns-train scalar-nerf`` through the global phase and both blocks, with nerfstudio's step log
+    on (its default); what the command printed is kept beside the run (:func:`full_run_log`)."""
+    def train(output_dir: Path) -> Path:
+        result = subprocess.run(ns_train_command(scene, output_dir, *TINY, step_log=True), capture_output=True, text=True, timeout=900)
+        (output_dir / "ns-train.log").write_text(result.stdout + result.stderr)
+        assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+        (run,) = run_dirs(output_dir)
+        assert "phases: global: steps 0-39, block 0: steps 40-54, block 1: steps 55-69" in " ".join(result.stdout.split())
+        return run
+
+    return built_once(tmp_path_factory, "full_run", train)
+
+
+def full_run_log(run: Path) -> str:
+    """What ``ns-train`` printed while training :func:`full_run` (stdout, then stderr)."""
+    return (run.parents[2] / "ns-train.log").read_text()
 
 
 def tiny_trainer(scene: Path, output_dir: Path, log2_hashmap_size: int = 14, rays_per_batch: int = 512,

@@ -1,4 +1,5 @@
-"""Checkpoints are atomic; a resumed run continues at the saved step with the same state."""
+"""Checkpoints are atomic; a resumed run continues at the saved step with the same state (a run killed
+with SIGKILL and resumed from the command line: test_scale.py)."""
 
 from __future__ import annotations
 
@@ -15,7 +16,7 @@ import pytest
 import torch
 import yaml
 
-from conftest import CASTLE, TRAIN_STEPS, castle_args, free_port, ns_train_command, requires_castle, run_dirs, sigkill_after_checkpoint
+from conftest import TRAIN_STEPS, free_port, requires_castle
 from scalar_nerfstudio.atomic_io import PARTIAL_SUFFIX, atomic_torch_save
 from scalar_nerfstudio.runs import latest_checkpoint_step
 
@@ -84,27 +85,6 @@ def test_resume_continues_at_saved_step_with_same_state(trained_castle_run: Path
     assert torch.equal(encoder_state["exp_avg"], saved["optimizers"]["encoder"]["state"][0]["exp_avg"])
     trainer.train()
     assert latest_checkpoint_step(run / "nerfstudio_models") == TRAIN_STEPS + 4
-
-
-@pytest.mark.slow
-@requires_castle
-def test_sigkilled_training_resumes_in_the_same_run(tmp_path: Path) -> None:
-    command = ns_train_command(CASTLE, tmp_path, "--max-num-iterations", "100000", "--steps-per-save", "3", *castle_args())
-    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    step = sigkill_after_checkpoint(process, tmp_path, min_step=6)
-    assert step is not None and step >= 6, "no checkpoint was written before the deadline"
-    (run,) = run_dirs(tmp_path)
-    checkpoints = run / "nerfstudio_models"
-    killed_at = latest_checkpoint_step(checkpoints)
-    for name in os.listdir(checkpoints):  # whatever survived the kill is complete and loadable
-        assert name.startswith("step-") and name.endswith(".ckpt")
-        assert torch.load(checkpoints / name, map_location="cpu")["step"] == int(name[5:14])
-
-    resume = ns_train_command(CASTLE, tmp_path, "--load-dir", str(checkpoints), "--max-num-iterations", str(killed_at + 4), *castle_args())
-    result = subprocess.run(resume, capture_output=True, text=True, timeout=600)
-    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
-    assert run_dirs(tmp_path) == [run], "the resumed run must continue in the same folder"
-    assert latest_checkpoint_step(checkpoints) == killed_at + 3
 
 
 def test_finished_phases_drop_their_optimizer_moments(scene: Path, tmp_path: Path) -> None:

@@ -1,6 +1,7 @@
 """A 64-block run as a user runs it, with tiny steps: it plans, trains, checkpoints, is killed and
 resumes, keeps every finished block in its own file (checkpoints stay one block's size), trains one
-block again in its own run, assembles, and renders with ns-eval. (Slow: about 2 minutes.)"""
+block again in its own run, assembles, and renders with ns-eval at least as well as its global model.
+(Slow: about 2 minutes.)"""
 
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ import pytest
 import torch
 
 from conftest import free_port, ns_eval, ns_train_command, run_dirs, sigkill_after_checkpoint, trained_block_tensors
+from quality import FUSION_TOLERANCE_DB, eval_renders, load_pipeline
 from scalar_nerfstudio.scenes.town import TownConfig, write_town
 from scalar_nerfstudio.runs import block_model_path, block_models_dir, latest_checkpoint_step
 
@@ -58,6 +60,9 @@ def test_64_blocks_train_resume_assemble_and_render_with_bounded_checkpoints(tow
                                          output, min_step=GLOBAL_STEPS + 20 * BLOCK_STEPS)
     assert killed_at is not None and GLOBAL_STEPS <= killed_at < TOTAL_STEPS - 1, killed_at
     (run,) = run_dirs(output)
+    for path in (run / "nerfstudio_models").iterdir():  # whatever survived the kill is complete and loadable
+        assert path.name.startswith("step-") and path.suffix == ".ckpt", path.name
+        assert torch.load(path, map_location="cpu", weights_only=False)["step"] == int(path.name[5:14])
     resume = ns_train_command(town, output, *SMALL, "--load-dir", str(run / "nerfstudio_models"), *DATA)
     resumed = subprocess.run(resume, capture_output=True, text=True, timeout=1200)
     assert resumed.returncode == 0, resumed.stdout[-3000:] + resumed.stderr[-3000:]
@@ -94,11 +99,12 @@ def test_64_blocks_train_resume_assemble_and_render_with_bounded_checkpoints(tow
     assembled_state = torch.load(_checkpoint(assembled), map_location="cpu", weights_only=True)["pipeline"]
     assert all(v.numel() == 0 for k, v in assembled_state.items() if k.startswith("_model.blocks.")), "assembled blocks live in files"
 
-    # both render every held-out view, fused from blocks loaded on demand
-    for folder in (run, assembled):
-        evaluation = ns_eval(folder, tmp_path / f"{folder.name}.json")
-        assert evaluation.returncode == 0, evaluation.stdout[-3000:] + evaluation.stderr[-3000:]
-        results = json.loads((tmp_path / f"{folder.name}.json").read_text())["results"]
-        assert 5.0 < results["psnr"] < 60.0
-        # the town has true depth: ns-eval scores the fused depth against it too
-        assert 0.0 <= results["depth_delta1"] <= 1.0 and results["depth_median_rel_error"] >= 0.0, results
+    # the assembled run renders every held-out view, fused from blocks loaded on demand, at least as
+    # well as its global model alone
+    evaluation = ns_eval(assembled, tmp_path / "assembled.json")
+    assert evaluation.returncode == 0, evaluation.stdout[-3000:] + evaluation.stderr[-3000:]
+    results = json.loads((tmp_path / "assembled.json").read_text())["results"]
+    global_only = eval_renders(load_pipeline(assembled), "global-only")[0]["psnr"]
+    assert results["psnr"] >= global_only - FUSION_TOLERANCE_DB, (results["psnr"], global_only)
+    # the town has true depth: ns-eval scores the fused depth against it too
+    assert 0.0 <= results["depth_delta1"] <= 1.0 and results["depth_median_rel_error"] >= 0.0, results

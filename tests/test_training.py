@@ -5,22 +5,11 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-import torch
 import yaml
 from nerfstudio.utils.eval_utils import eval_setup
 
 from conftest import TRAIN_STEPS, requires_castle
-
-
-def mean_image_psnr(pipeline) -> float:
-    """PSNR on the eval views of the mean training image (the trivial baseline)."""
-    train_images = [pipeline.datamanager.train_dataset[i]["image"][..., :3] for i in range(len(pipeline.datamanager.train_dataset))]
-    mean_image = torch.stack(train_images).mean(dim=0)
-    scores = []
-    for _, batch in pipeline.datamanager.fixed_indices_eval_dataloader:
-        mse = torch.mean((batch["image"][..., :3].to(mean_image) - mean_image) ** 2)
-        scores.append(float(-10.0 * torch.log10(mse)))
-    return sum(scores) / len(scores)
+from quality import mean_image_psnr
 
 
 @pytest.mark.slow
