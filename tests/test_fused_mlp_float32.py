@@ -236,3 +236,18 @@ def test_a_forced_kernel_the_cpu_lacks_falls_back_with_one_warning(monkeypatch: 
     warnings = [r.getMessage() for r in caplog.records if "cpu_decoder_kernel='avx2' cannot run here" in r.getMessage()]
     assert len(warnings) == 1 and "'torch' in float32 instead" in warnings[0]
     scalar_field._warn_once.cache_clear()
+
+
+def test_ns_train_refuses_contradictory_kernel_settings_up_front() -> None:
+    from scalar_nerfstudio.config_checks import OptionError, check_pipeline_options
+    from scalar_nerfstudio.models.scalar_model import ScalarModelConfig
+    from scalar_nerfstudio.pipeline import ScalarPipelineConfig
+
+    def pipeline(**field: object) -> ScalarPipelineConfig:
+        return ScalarPipelineConfig(model=ScalarModelConfig(field=ScalarFieldConfig(**field)))
+
+    check_pipeline_options(pipeline(cpu_decoder_kernel="avx2"))  # fine whatever the CPU (it falls back where it must)
+    with pytest.raises(OptionError, match=r"--pipeline.model.field.cpu-decoder-kernel: .*'avx2' multiplies in float32"):
+        check_pipeline_options(pipeline(cpu_decoder_kernel="avx2", decoder_precision="bfloat16"))
+    with pytest.raises(OptionError, match="fused_decoder=False"):
+        check_pipeline_options(pipeline(cpu_decoder_kernel="avx512bf16", fused_decoder=False))

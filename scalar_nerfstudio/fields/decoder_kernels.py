@@ -34,6 +34,18 @@ class DecoderKernelChoice:
     """Why the requested kernel was not taken (it cannot run here), or None."""
 
 
+def kernel_conflict(requested: str, precision: str, fused: bool) -> Optional[str]:
+    """Why ``cpu_decoder_kernel`` = ``requested`` contradicts ``decoder_precision`` = ``precision`` or
+    ``fused_decoder`` = ``fused``, or None when it does not (whatever the CPU)."""
+    if requested == "avx512bf16" and precision == "float32":
+        return "cpu_decoder_kernel='avx512bf16' multiplies in bfloat16, but decoder_precision='float32'"
+    if requested == "avx2" and precision == "bfloat16":
+        return "cpu_decoder_kernel='avx2' multiplies in float32, but decoder_precision='bfloat16'"
+    if not fused and requested in ("avx512bf16", "avx2"):
+        return f"cpu_decoder_kernel={requested!r} names a fused kernel, but fused_decoder=False"
+    return None
+
+
 def choose_cpu_decoder_kernel(
     requested: CpuDecoderKernel,
     precision: DecoderPrecision,
@@ -58,16 +70,12 @@ def choose_cpu_decoder_kernel(
         has_avx2: whether the float32 fused kernels run here with AVX2 + FMA.
 
     Raises:
-        ValueError: for contradictory settings: avx512bf16 with float32 products, avx2 with bfloat16
-            products, or a fused kernel named while ``fused`` is False.
+        ValueError: for contradictory settings (:func:`kernel_conflict`).
     """
-    if requested == "avx512bf16" and precision == "float32":
-        raise ValueError("cpu_decoder_kernel='avx512bf16' multiplies in bfloat16, but decoder_precision='float32'")
-    if requested == "avx2" and precision == "bfloat16":
-        raise ValueError("cpu_decoder_kernel='avx2' multiplies in float32, but decoder_precision='bfloat16'")
+    conflict = kernel_conflict(requested, precision, fused)
+    if conflict is not None:
+        raise ValueError(conflict)
     if not fused:
-        if requested in ("avx512bf16", "avx2"):
-            raise ValueError(f"cpu_decoder_kernel={requested!r} names a fused kernel, but fused_decoder=False")
         requested = "torch"
     note = None
     if requested == "avx512bf16" and not has_avx512bf16:
