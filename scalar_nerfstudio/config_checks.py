@@ -19,6 +19,8 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any, Optional, TypeGuard
 
+from scalar_nerfstudio.fields.decoder_kernels import kernel_conflict
+
 __all__ = ["OptionError", "check_block_plan", "check_options", "check_output_dir", "check_pipeline_options", "check_trainer_options"]
 
 #: log2 table rows beyond this (2^30 rows, 16 GiB per 4-feature level in float32) cannot be allocated anyway.
@@ -150,6 +152,10 @@ def _check_model(model: Any) -> None:
         base, finest = getattr(field, "base_resolution", 1), getattr(field, "max_resolution", 1)
         if not _is_int(finest) or finest < base:
             raise OptionError(f"{prefix}max-resolution {_show(finest)}: must be a whole number >= --pipeline.model.field.base-resolution ({base}).")
+        conflict = kernel_conflict(getattr(field, "cpu_decoder_kernel", "auto"), getattr(field, "decoder_precision", "auto"),
+                                   getattr(field, "fused_decoder", True))
+        if conflict is not None:
+            raise OptionError(f"{prefix}cpu-decoder-kernel: {conflict}; change one of the two.")
     prefix = "--pipeline.model."
     for name in ("num_samples_per_ray", "occupancy_resolution", "occupancy_update_every"):
         _at_least(model, name, 1, prefix=prefix)

@@ -1,12 +1,17 @@
 """Lazy, once-per-process JIT builds of the C++/OpenMP CPU kernels and the CUDA hash grid.
 
-The CPU kernels (``scalar_nerfstudio/csrc/hash_grid.cpp``, ``csrc/sampling.cpp`` and ``csrc/mlp.cpp``) are compiled
+The CPU kernels (``scalar_nerfstudio/csrc/hash_grid.cpp``, ``csrc/sampling.cpp``, ``csrc/mlp.cpp`` and
+``csrc/mlp_f32.cpp``) are compiled
 into one extension with :func:`torch.utils.cpp_extension.load` on first use (~20 s; cached
 afterwards in torch's extension directory, ``$TORCH_EXTENSIONS_DIR`` or
 ``~/.cache/torch_extensions``). It registers the ops ``torch.ops.scalar_nerf_hash_grid.forward``
 and ``.backward`` (the hash grid), and ``torch.ops.scalar_nerf_sampling.unit_positions`` and
 ``.worth_evaluating`` (ray samples and the occupancy test), and ``torch.ops.scalar_nerf_mlp.forward``,
-``.backward`` and ``.supported`` (the fused bfloat16 decoder, ``fields/fused_mlp.py``).
+``.backward`` and ``.supported`` (the fused bfloat16 decoder, ``fields/fused_mlp.py``), and
+``torch.ops.scalar_nerf_mlp_f32.forward``, ``.backward`` and ``.isa`` (the fused float32 decoder,
+``fields/fused_mlp_float32.py``). No ``-march`` flag: the binary runs on any CPU of its architecture
+(the cache is keyed by the sources, not the CPU); kernels for newer instruction sets (AVX512-BF16,
+AVX2 + FMA) are compiled per function and chosen at run time.
 
 The CUDA hash grid (``csrc/hash_grid_cuda.cu``, ops ``torch.ops.scalar_nerf_hash_grid_cuda.forward``
 and ``.backward``) is a second extension, built with nvcc the first time a CUDA tensor is encoded
@@ -30,7 +35,7 @@ if TYPE_CHECKING:
 
 CSRC = Path(__file__).resolve().parent.parent / "csrc"
 EXTENSION_NAME = "scalar_nerf_hash_grid"
-SOURCES = [CSRC / name for name in ("hash_grid.cpp", "sampling.cpp", "mlp.cpp")]
+SOURCES = [CSRC / name for name in ("hash_grid.cpp", "sampling.cpp", "mlp.cpp", "mlp_f32.cpp")]
 SAMPLING_NAMESPACE = "scalar_nerf_sampling"
 CUDA_EXTENSION_NAME = "scalar_nerf_hash_grid_cuda"
 CUDA_SOURCES = [CSRC / "hash_grid_cuda.cu"]

@@ -7,6 +7,7 @@ model's decoder (fine-tuned, frozen or replaced), while the encoder is always th
 from __future__ import annotations
 
 import functools
+import logging
 from dataclasses import dataclass, field
 from typing import Literal, Optional, Type
 
@@ -18,7 +19,11 @@ from torch import Tensor, nn
 
 from scalar_nerfstudio.encodings import HashGridEncoding, _cpp
 from scalar_nerfstudio.encodings.hash_grid import level_corners, sanitise_positions
+from scalar_nerfstudio.fields.decoder_kernels import CpuDecoderKernel, choose_cpu_decoder_kernel
 from scalar_nerfstudio.fields.fused_mlp import fused_mlp, fused_mlp_available, linear_layers
+from scalar_nerfstudio.fields.fused_mlp_float32 import float32_mlp_isa, fused_mlp_float32
+
+_logger = logging.getLogger(__name__)
 
 # Values beyond this magnitude are clamped before contraction: far enough to contract to the
 # boundary (2 - 1e-30 == 2 in float32) and small enough that squaring cannot overflow float32.
@@ -170,8 +175,11 @@ class Decoder(nn.Module):
         geo_feat_dim: features passed from the density head to the colour head.
         direction_dim: size of the encoded view direction.
         appearance_dim: size of the per-image appearance embedding.
-        fused_training: run the layers with gradients on the CPU under bfloat16 autocast through
-            :func:`fused_mlp` (csrc/mlp.cpp) where this CPU has AVX512-BF16.
+        training_kernel: how the layers run with gradients on the CPU: ``"avx512bf16"``: under
+            bfloat16 autocast through :func:`fused_mlp` (csrc/mlp.cpp) where this CPU has
+            AVX512-BF16; ``"avx2"``: in float32 (no autocast) through :func:`fused_mlp_float32`
+            (csrc/mlp_f32.cpp) where it has AVX2 and FMA; ``"torch"``: autograd layer by layer
+            (also wherever the named kernel cannot run).
     """
 
     def __init__(
@@ -182,13 +190,14 @@ class Decoder(nn.Module):
         direction_dim: int,
         appearance_dim: int,
         density_bias: float,
-        fused_training: bool = True,
+        training_kernel: Literal["avx512bf16", "avx2", "torch"] = "avx512bf16",
     ) -> None:
         super().__init__()
         self.geo_feat_dim = geo_feat_dim
         self.density_bias = density_bias
         self.fused_cpu_inference = fused_linear_available()
-        self.fused_cpu_training = fused_training and fused_mlp_available()
+        self.fused_cpu_training = training_kernel == "avx512bf16" and fused_mlp_available()
+        self.float32_cpu_training = training_kernel == "avx2" and float32_mlp_isa() == "avx2"
         self.density_mlp = nn.Sequential(
             nn.Linear(in_dim, hidden_dim), nn.ReLU(inplace=True), nn.Linear(hidden_dim, 1 + geo_feat_dim)
         )
@@ -225,13 +234,26 @@ class Decoder(nn.Module):
             and cpu_autocast_dtype() == torch.bfloat16
         )
 
+    def _float32_training_applies(self, inputs: Tensor) -> bool:
+        """Whether :meth:`_mlp` takes the fused float32 training kernels for ``inputs``."""
+        return (
+            self.float32_cpu_training
+            and torch.is_grad_enabled()
+            and inputs.device.type == "cpu"
+            and inputs.dtype == torch.float32
+            and cpu_autocast_dtype() is None
+        )
+
     def _mlp(self, mlp: nn.Sequential, inputs: Tensor) -> Tensor:
         """``mlp(inputs)``. On the CPU under bfloat16 autocast with autograd, through :func:`fused_mlp`
-        (float32 result) where enabled; without autograd on the CPU, through :func:`run_mlp_fused` in
+        (float32 result) where enabled; on the CPU in float32 (no autocast) with autograd, through
+        :func:`fused_mlp_float32` where enabled; without autograd on the CPU, through :func:`run_mlp_fused` in
         the precision autocast asks for (float32 outside autocast), except bfloat16 on a CPU without
         native bfloat16 products (:func:`cpu_bfloat16_is_fast`), where oneDNN has no such kernel."""
         if self._fused_training_applies(inputs):
             return fused_mlp(mlp, inputs)
+        if self._float32_training_applies(inputs):
+            return fused_mlp_float32(mlp, inputs, "avx2")
         if not self.fused_cpu_inference or torch.is_grad_enabled() or inputs.device.type != "cpu":
             return mlp(inputs)
         dtype = cpu_autocast_dtype() or inputs.dtype
@@ -248,6 +270,12 @@ def cpu_bfloat16_is_fast() -> bool:
         return bool(torch.backends.mkldnn.is_available() and torch.ops.mkldnn._is_mkldnn_bf16_supported())
     except (AttributeError, RuntimeError):
         return False
+
+
+@functools.lru_cache(maxsize=None)
+def _warn_once(message: str) -> None:
+    """Logs ``message`` as a warning the first time it comes in this process (a run builds many fields)."""
+    _logger.warning(message)
 
 
 @dataclass
@@ -274,10 +302,16 @@ class ScalarFieldConfig(InstantiateConfig):
     """Width of the decoder's hidden layers (neurons); 128 gives the paper's decoder."""
     decoder_precision: Literal["auto", "float32", "bfloat16"] = "auto"
     """Precision of the decoder's matrix products on CPU; "auto": bfloat16 where the CPU multiplies it
-    natively, else float32. On CUDA the trainer's mixed precision decides."""
+    natively, else float32 (float32 also when ``cpu_decoder_kernel`` is "avx2"). On CUDA the trainer's
+    mixed precision decides."""
     fused_decoder: bool = True
-    """Train the bfloat16 decoder on the CPU through the fused C++ kernels (csrc/mlp.cpp) where the CPU
-    has AVX512-BF16; off: autograd's layer-by-layer bfloat16 products."""
+    """Train the decoder on the CPU through the fused C++ kernels (see ``cpu_decoder_kernel``); off:
+    autograd's layer-by-layer products (``cpu_decoder_kernel`` "torch")."""
+    cpu_decoder_kernel: CpuDecoderKernel = "auto"
+    """Kernels that train the decoder on the CPU: "avx512bf16" (bfloat16 products, fused; needs
+    AVX512-BF16), "avx2" (float32 products, fused; needs AVX2 and FMA), "torch" (autograd layer by
+    layer). "auto": avx512bf16 for bfloat16 products, avx2 for float32 ones. A kernel the CPU lacks
+    falls back to "auto" with a warning. Sets the precision when ``decoder_precision`` is "auto"."""
     geo_feat_dim: int = 15
     """Features from the density head to the colour head."""
     appearance_dim: int = 8
@@ -309,6 +343,17 @@ class ScalarField(nn.Module):
             implementation=config.encoder_implementation,
         )
         self.direction_encoding = SHEncoding(levels=config.sh_degree, implementation="torch")
+        choice = choose_cpu_decoder_kernel(
+            config.cpu_decoder_kernel,
+            config.decoder_precision,
+            fused=config.fused_decoder,
+            bfloat16_is_fast=cpu_bfloat16_is_fast(),
+            has_avx512bf16=fused_mlp_available(),
+            has_avx2=float32_mlp_isa() == "avx2",
+        )
+        if choice.note is not None:
+            _warn_once(choice.note)
+        self.cpu_decoder_kernel = choice.kernel
         self.decoder = Decoder(
             in_dim=self.encoder.get_out_dim(),
             hidden_dim=config.hidden_dim,
@@ -316,12 +361,11 @@ class ScalarField(nn.Module):
             direction_dim=self.direction_encoding.get_out_dim(),
             appearance_dim=config.appearance_dim,
             density_bias=config.density_bias,
-            fused_training=config.fused_decoder,
+            training_kernel=choice.kernel,
         )
         self.appearance = nn.Embedding(max(num_images, 1), config.appearance_dim)
         nn.init.normal_(self.appearance.weight, std=0.01)
-        precision = config.decoder_precision
-        self.cpu_bfloat16 = precision == "bfloat16" or (precision == "auto" and cpu_bfloat16_is_fast())
+        self.cpu_bfloat16 = choice.bfloat16
 
     def _decoder_autocast(self, like: Tensor) -> torch.autocast:
         """bfloat16 autocast for the decoder on CPU when configured; a no-op context otherwise."""
