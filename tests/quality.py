@@ -21,8 +21,10 @@ from nerfstudio.utils.eval_utils import eval_setup
 #: How far below its global model a fused render may score on a tiny test run (dB). The blocks start
 #: as copies of the global model and only train a few steps, so the fusion may cost a little.
 FUSION_TOLERANCE_DB = 0.3
-#: How much a tiny test run must beat its own untrained model on the held-out views (dB).
-TRAINED_MARGIN_DB = 3.0
+#: How much a tiny test run must beat its own untrained model on the held-out views (dB). The suite's
+#: runs (100 global steps) gain about 3-4 dB; a run that did not learn, or whose checkpoint did not
+#: load, gains nothing.
+TRAINED_MARGIN_DB = 2.0
 
 
 @contextlib.contextmanager

@@ -704,6 +704,7 @@ def test_ns_train_process_stops_cleanly(good_scene: Path, tmp_path: Path) -> Non
     assert "frame 3 (images/frame_00003.jpg): the image" in result.stderr
 
 
+@pytest.mark.slow  # trains
 def test_grayscale_and_rgba_scene_trains(mixed_scene: Path, tmp_path: Path) -> None:
     """Grayscale, RGBA, palette and 16-bit images train (a few steps, through an eval image) with one note."""
     outputs = tmp_path / "outputs"

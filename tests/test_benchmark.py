@@ -859,6 +859,7 @@ def test_train_vs_heldout_scores_held_out_views_as_ns_eval_does(full_run: Path, 
     assert abs(row["gap_db"] - (row["train_psnr"] - row["held_out_psnr"])) < 1e-9
 
 
+@pytest.mark.slow  # trains
 def test_the_same_spec_trains_the_same_model_and_another_seed_another(scene: Path, tmp_path: Path) -> None:
     """A benchmark run is seeded as ns-train seeds its runs (``machine.seed``): the same spec gives the
     same held-out PSNR to the last bit, another seed another one. (Unseeded, two runs of one spec

@@ -96,6 +96,7 @@ def _block_render_errors(trainer, block: int) -> float:
     return sum(errors) / len(errors)
 
 
+@pytest.mark.slow  # trains
 def test_fitted_block_starts_close_to_the_global_model(scene: Path, tmp_path: Path) -> None:
     """A fresh block's first renders of its own images are far from the global model's (it starts empty);
     a fitted one, in the same frame with the same table, renders close to what the global model renders."""
@@ -115,6 +116,7 @@ def test_fitted_blocks_need_the_global_decoder(scene: Path, tmp_path: Path) -> N
     assert not list(tmp_path.rglob("*.ckpt"))
 
 
+@pytest.mark.slow  # trains
 def test_fresh_block_learns_its_images_from_a_seeded_grid(scene: Path, tmp_path: Path) -> None:
     """A fresh block (the paper's: an empty table of its own and the global decoder) starts with its
     occupancy grid seeded from the global model's density and no warm-up. Its young field is nearly

@@ -170,6 +170,7 @@ def test_pipeline_explicit_settings_win(scene: Path, tmp_path: Path) -> None:
         assert encoder.table.shape[0] <= encoder.num_levels * (1 << 12)
 
 
+@pytest.mark.slow  # trains
 def test_pipeline_automatic_capacity_within_bounds_and_report(scene: Path, tmp_path: Path) -> None:
     """Automatic K and per-block tables; training ends with model_report.json naming every model."""
     trainer = _trainer(scene, tmp_path, num_blocks=2, block_log2_hashmap_bounds=(10, 13), block_max_resolution_bounds=(32, 200),

@@ -87,6 +87,7 @@ def test_resume_continues_at_saved_step_with_same_state(trained_castle_run: Path
     assert latest_checkpoint_step(run / "nerfstudio_models") == TRAIN_STEPS + 4
 
 
+@pytest.mark.slow  # trains
 def test_finished_phases_drop_their_optimizer_moments(scene: Path, tmp_path: Path) -> None:
     """Once a phase ends its groups never train again: their Adam moments leave memory and the checkpoints."""
     from conftest import tiny_trainer

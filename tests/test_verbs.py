@@ -39,8 +39,8 @@ TINY_AUTO = [
     "--pipeline.datamanager.train-num-rays-per-batch", "256",
     "--pipeline.model.occupancy-warmup-steps", "8",
     "--pipeline.block-log2-hashmap-bounds", "10", "12",
-    "--pipeline.global-steps", "20",
-    "--pipeline.block-steps", "10",
+    "--pipeline.global-steps", "100",  # ~+3.4 dB over step 0 (20 steps: +0.6); the time goes into starting ns-train
+    "--pipeline.block-steps", "30",
 ]
 
 

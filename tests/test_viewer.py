@@ -252,8 +252,8 @@ def test_render_command_refuses_an_unknown_fusion_before_loading_anything(tmp_pa
 @pytest.mark.slow
 def test_render_command_writes_the_runs_own_render_under_the_fusion_asked(full_run: Path, tmp_path: Path) -> None:
     """``scalar-nerf-render dataset --fusion block:1`` writes, for every held-out view, what the run
-    renders in-process for that camera under block:1 (to the 8-bit level), which is not what the
-    default fusion renders."""
+    renders in-process for that camera under block:1 (to the 8-bit level), which is not what its
+    global model renders."""
     output = tmp_path / "block_1"
     result = subprocess.run(
         ["scalar-nerf-render", "dataset", "--fusion", "block:1", "--load-config", str(full_run / "config.yml"), "--output-path", str(output),
@@ -266,11 +266,13 @@ def test_render_command_writes_the_runs_own_render_under_the_fusion_asked(full_r
     names = [Path(f).name for f in pipeline.datamanager.eval_dataset.image_filenames]
     assert [p.stem for p in saved] == sorted(Path(n).stem for n in names)
     _, block_1 = eval_renders(pipeline, "block:1")
-    _, default = eval_renders(pipeline, "nearest-guarded")
-    for name, render, other in zip(names, block_1, default):
+    _, global_only = eval_renders(pipeline, "global-only")
+    differences = []
+    for name, render, other in zip(names, block_1, global_only):
         (path,) = [p for p in saved if p.stem == Path(name).stem]
         assert image_difference(path, render) < 1.0, f"{path.name} is not the run's block:1 render of that camera"
-        assert image_difference(path, other) > 2.0 * image_difference(path, render) + 0.5, f"{path.name}: the fusion made no difference"
+        differences.append(image_difference(path, other))
+    assert np.mean(differences) > 1.0, f"block:1 renders what the global model renders: {differences}"
 
 
 @pytest.mark.slow
