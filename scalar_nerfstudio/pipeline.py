@@ -32,7 +32,7 @@ from scalar_nerfstudio.engine.device import keep_freed_memory
 from scalar_nerfstudio.models.scene_model import BlockInit, DecoderMode, ScalarSceneModel, ScalarSceneModelConfig
 from scalar_nerfstudio.pipeline_text import format_eval_metrics, format_plan_report
 from scalar_nerfstudio.runs import RUN_SCHEMA_VERSION, block_models_dir
-from scalar_nerfstudio.viewer import BlockOverlay, CoarseFirstRender, fusion_dropdown
+from scalar_nerfstudio.viewer import BlockOverlay, CoarseFirstRender, FinishedRunPanel, fusion_dropdown
 
 
 LrSchedule = Literal["restart", "per-phase"]
@@ -185,10 +185,12 @@ class ScalarPipeline(VanillaPipeline):
             self.attach_run_dir(Path(config.run_plan).parent)
         if config.global_checkpoint is not None:
             self._load_global_model(Path(config.global_checkpoint), device)
-        # Viewer: fusion dropdown, block overlay, coarse-first renders (found by nerfstudio's viewer as attributes).
+        # Viewer: fusion dropdown, block overlay, coarse-first renders, the panel of a finished run (found by
+        # nerfstudio's viewer as attributes).
         self.fusion_dropdown = fusion_dropdown(str(self.model.fusion_mode), self.split.num_blocks, self.model.set_fusion)
         self.block_overlay = BlockOverlay(self.split, camera_centres(parsed).numpy())
         self.coarse_first_render = CoarseFirstRender()
+        self.finished_run_panel = FinishedRunPanel()
         self._block_datamanager: Optional[DataManager] = None
         self._block_datamanager_index: Optional[int] = None
         self._device = device

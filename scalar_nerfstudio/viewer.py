@@ -9,6 +9,8 @@
 
 * :class:`CoarseFirstRender`: a still view of a CPU model is rendered coarse first, then at full
   size (``viewer_render.py``).
+* :class:`FinishedRunPanel`: on ``ns-viewer`` of a trained run, the panel shows the run's step and no
+  "Pause Training" button (nerfstudio's viewer shows "Pause Training" and "Step: 0" there).
 
 All are found by nerfstudio's viewer because they are attributes of the pipeline (``ViewerControl``
 objects are handed the viewer object by ``ViewerControl._setup``).
@@ -63,6 +65,31 @@ class CoarseFirstRender(ViewerControl):
         from scalar_nerfstudio.viewer_render import install_progressive_render  # imports nerfstudio's viewer (slow)
 
         install_progressive_render(viewer)
+
+
+class FinishedRunPanel(ViewerControl):
+    """On a viewer without a trainer (``ns-viewer`` of a trained run) hides nerfstudio's "Pause Training" and
+    "Resume Training" buttons (there is no training to pause) and shows the run's step in the stats line.
+
+    nerfstudio's ``ns-viewer`` builds its viewer with no trainer, so the buttons show "Pause Training", and
+    it passes the checkpoint's step to ``Viewer.update_scene``, which stores it in ``viewer.step`` but
+    writes "Step:" only while training. The step is written when a browser connects (``update_scene``
+    runs after the viewer's controls are set up). Uses the viewer's public attributes only.
+    """
+
+    def _setup(self, viewer) -> None:  # called by nerfstudio's Viewer once the server runs
+        super()._setup(viewer)
+        if getattr(viewer, "trainer", None) is not None:
+            return  # ns-train: nerfstudio's buttons pause and resume the training
+        for name in ("pause_train", "resume_train"):
+            button = getattr(viewer, name, None)
+            if button is not None:
+                button.visible = False
+        self.viser_server.on_client_connect(lambda client: self.show_step())
+
+    def show_step(self) -> None:
+        """Write the run's step (``viewer.step``) into the viewer's stats line."""
+        self.viewer.update_step(int(self.viewer.step))
 
 
 class BlockOverlay(ViewerControl):

@@ -10,6 +10,7 @@ import sys
 import time
 import urllib.request
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -21,7 +22,7 @@ from quality import FUSION_TOLERANCE_DB, TRAINED_MARGIN_DB, eval_renders, image_
 from scalar_nerfstudio.fusion_eval import evaluate_fusion_modes, markdown_table
 from scalar_nerfstudio.blocks.palette import BLOCK_PALETTE, block_colour
 from scalar_nerfstudio.blocks.split import split_cameras
-from scalar_nerfstudio.viewer import BlockOverlay, CoarseFirstRender, box_edges, fusion_options
+from scalar_nerfstudio.viewer import BlockOverlay, CoarseFirstRender, FinishedRunPanel, box_edges, fusion_options
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 CHROMEDRIVER = shutil.which("chromedriver")
@@ -103,6 +104,31 @@ def test_coarse_first_render_control_makes_the_viewer_render_cpu_models_coarse_f
         viewer.get_model = lambda device=device: type("Model", (), {"device": torch.device(device)})()
         CoarseFirstRender()._setup(viewer)
         assert isinstance(viewer.render_statemachines, ProgressiveMachines) is progressive
+
+
+def test_finished_run_panel_hides_the_train_buttons_and_shows_the_runs_step_on_ns_viewer() -> None:
+    """ns-viewer builds nerfstudio's Viewer without a trainer: no "Pause Training", and "Step:" is the run's
+    step once a browser connects. Under ns-train (a trainer) nerfstudio's buttons are left alone."""
+    from nerfstudio.viewer.viewer import Viewer
+
+    for trainer in (None, object()):
+        connect_callbacks: list = []
+        viewer = _FakeViewer()
+        viewer.viser_server.on_client_connect = connect_callbacks.append
+        viewer.trainer, viewer.step = trainer, 0
+        viewer.pause_train, viewer.resume_train = SimpleNamespace(visible=True), SimpleNamespace(visible=False)
+        viewer.stats_markdown = SimpleNamespace(content="Step: 0  \nResolution: 0x0px")
+        viewer.make_stats_markdown = lambda step, res, viewer=viewer: Viewer.make_stats_markdown(viewer, step, res)
+        viewer.update_step = lambda step, viewer=viewer: Viewer.update_step(viewer, step)
+        FinishedRunPanel()._setup(viewer)
+        viewer.step = 499  # ns-viewer's update_scene(step=...) after the controls are set up
+        for callback in connect_callbacks:
+            callback(SimpleNamespace(client_id=1))
+        if trainer is None:
+            assert not viewer.pause_train.visible and not viewer.resume_train.visible
+            assert viewer.stats_markdown.content.startswith("Step: 499")
+        else:
+            assert viewer.pause_train.visible and connect_callbacks == []
 
 
 # --------------------------------------------------------------------- the trained run
