@@ -14,7 +14,7 @@ which is what CPU autocast's bfloat16 products compute too.
 from __future__ import annotations
 
 import functools
-from typing import Optional
+from typing import Optional, Sequence
 
 import torch
 from torch import Tensor, nn
@@ -24,8 +24,9 @@ from scalar_nerfstudio.encodings._cpp import load_extension
 _WIDTH_MULTIPLE = 16
 
 
-def _padded(width: int) -> int:
-    return -(-width // _WIDTH_MULTIPLE) * _WIDTH_MULTIPLE
+def padded_width(width: int, multiple: int = _WIDTH_MULTIPLE) -> int:
+    """``width`` rounded up to a multiple of ``multiple`` (the kernels' padded layer widths)."""
+    return -(-width // multiple) * multiple
 
 
 @functools.lru_cache(maxsize=None)
@@ -63,23 +64,48 @@ def linear_layers(mlp: nn.Sequential) -> tuple[list[nn.Linear], list[bool]]:
     return layers, relu
 
 
+def mlp_arguments(mlp: nn.Sequential) -> tuple[tuple[bool, ...], list[Optional[Tensor]]]:
+    """What the fused MLP functions take for ``mlp``: the ReLU flag of each Linear layer and its
+    parameters in order (weight 0, bias 0, weight 1, ...; a missing bias is None). Raises as
+    :func:`linear_layers`."""
+    layers, relu = linear_layers(mlp)
+    params: list[Optional[Tensor]] = []
+    for layer in layers:
+        params.extend([layer.weight, layer.bias])
+    return tuple(relu), params
+
+
+def padded_bias(bias: Optional[Tensor], out_dim: int, like: Tensor, multiple: int = _WIDTH_MULTIPLE) -> Tensor:
+    """Bias [O] (zeros where None) as float32 [Op], zero-padded to a multiple of ``multiple``, on ``like``'s device."""
+    padded = like.new_zeros(padded_width(out_dim, multiple), dtype=torch.float32)
+    if bias is not None:
+        padded[:out_dim] = bias.detach().float()
+    return padded
+
+
+def layer_gradients(results: Sequence[Tensor], shapes: Sequence[tuple[int, int]], has_bias: Sequence[bool],
+                    needs_grad: Sequence[bool]) -> list[Optional[Tensor]]:
+    """The parameters' gradients from a fused backward's ``results`` (the input gradient, then per layer
+    grad_wt [Kp, Op] and grad_b [Op]): per layer weight [O, K] then bias [O], None where ``needs_grad``
+    (one flag per parameter, weight then bias) is false or the layer has no bias."""
+    grads: list[Optional[Tensor]] = []
+    for index, (out_dim, in_dim) in enumerate(shapes):
+        grad_wt, grad_b = results[1 + 2 * index], results[2 + 2 * index]
+        grads.append(grad_wt[:in_dim, :out_dim].t() if needs_grad[2 * index] else None)
+        grads.append(grad_b[:out_dim] if has_bias[index] and needs_grad[2 * index + 1] else None)
+    return grads
+
+
 def pack_weights(weight: Tensor) -> tuple[Tensor, Tensor]:
     """[O, K] float32 weight -> (forward [Kp/2, Op, 2], backward [Op/2, Kp, 2]) bfloat16, zero-padded
     to multiples of 16 (the kernel's layouts, csrc/mlp.cpp)."""
     out_dim, in_dim = weight.shape
-    padded = weight.new_zeros(_padded(out_dim), _padded(in_dim))
+    padded = weight.new_zeros(padded_width(out_dim), padded_width(in_dim))
     padded[:out_dim, :in_dim] = weight.detach()
     padded = padded.to(torch.bfloat16)
     forward = padded.view(padded.shape[0], -1, 2).permute(1, 0, 2).contiguous()
     backward = padded.view(-1, 2, padded.shape[1]).permute(0, 2, 1).contiguous()
     return forward, backward
-
-
-def _padded_bias(bias: Optional[Tensor], out_dim: int, like: Tensor) -> Tensor:
-    padded = like.new_zeros(_padded(out_dim), dtype=torch.float32)
-    if bias is not None:
-        padded[:out_dim] = bias.detach().float()
-    return padded
 
 
 class _FusedMlp(torch.autograd.Function):
@@ -89,7 +115,7 @@ class _FusedMlp(torch.autograd.Function):
     def forward(ctx, inputs: Tensor, relu: tuple[bool, ...], *params: Tensor) -> Tensor:  # type: ignore[override]
         weights, biases = params[0::2], params[1::2]
         packed = [pack_weights(w) for w in weights]
-        padded_biases = [_padded_bias(b, w.shape[0], w) for w, b in zip(weights, biases)]
+        padded_biases = [padded_bias(b, w.shape[0], w) for w, b in zip(weights, biases)]
         flags = [int(r) for r in relu]
         results = torch.ops.scalar_nerf_mlp.forward(
             inputs.contiguous(), [f for f, _ in packed], padded_biases, flags, weights[-1].shape[0]
@@ -112,12 +138,7 @@ class _FusedMlp(torch.autograd.Function):
             grad_out.float().contiguous(), activations, packed_t, ctx.flags, ctx.in_dim if need_input else 0
         )
         grad_input = results[0].to(ctx.input_dtype) if need_input else None
-        grads: list[Optional[Tensor]] = []
-        for index, (out_dim, in_dim) in enumerate(ctx.shapes):
-            grad_wt, grad_b = results[1 + 2 * index], results[2 + 2 * index]
-            grads.append(grad_wt[:in_dim, :out_dim].t() if ctx.needs_input_grad[2 + 2 * index] else None)
-            grads.append(grad_b[:out_dim] if ctx.has_bias[index] and ctx.needs_input_grad[3 + 2 * index] else None)
-        return (grad_input, None, *grads)
+        return (grad_input, None, *layer_gradients(results, ctx.shapes, ctx.has_bias, ctx.needs_input_grad[2:]))
 
 
 def fused_mlp(mlp: nn.Sequential, inputs: Tensor) -> Tensor:
@@ -132,9 +153,6 @@ def fused_mlp(mlp: nn.Sequential, inputs: Tensor) -> Tensor:
     """
     if not fused_mlp_available():
         raise RuntimeError("fused_mlp needs the C++ extension and a CPU with AVX512-BF16 (fused_mlp_available())")
-    layers, relu = linear_layers(mlp)
-    params: list[Optional[Tensor]] = []
-    for layer in layers:
-        params.extend([layer.weight, layer.bias])
-    return _FusedMlp.apply(inputs, tuple(relu), *params)
+    relu, params = mlp_arguments(mlp)
+    return _FusedMlp.apply(inputs, relu, *params)
 

@@ -22,14 +22,10 @@ from torch import Tensor, nn
 from torch.autograd.function import once_differentiable
 
 from scalar_nerfstudio.encodings._cpp import load_extension
-from scalar_nerfstudio.fields.fused_mlp import linear_layers
+from scalar_nerfstudio.fields.fused_mlp import layer_gradients, mlp_arguments, padded_bias, padded_width
 
 Float32Isa = Literal["avx2", "portable"]
 _WIDTH_MULTIPLE = 8
-
-
-def _padded(width: int) -> int:
-    return -(-width // _WIDTH_MULTIPLE) * _WIDTH_MULTIPLE
 
 
 @functools.lru_cache(maxsize=None)
@@ -48,16 +44,10 @@ def pack_weights_float32(weight: Tensor) -> tuple[Tensor, Tensor]:
     """[O, K] weight -> (forward [Kp, Op] = W^T, backward [Op, Kp] = W) float32, zero-padded to
     multiples of 8 (the kernel's layouts, csrc/mlp_f32.cpp)."""
     out_dim, in_dim = weight.shape
-    padded = weight.new_zeros(_padded(out_dim), _padded(in_dim), dtype=torch.float32)
+    shape = (padded_width(out_dim, _WIDTH_MULTIPLE), padded_width(in_dim, _WIDTH_MULTIPLE))
+    padded = weight.new_zeros(shape, dtype=torch.float32)
     padded[:out_dim, :in_dim] = weight.detach()
     return padded.t().contiguous(), padded
-
-
-def _padded_bias(bias: Optional[Tensor], out_dim: int, like: Tensor) -> Tensor:
-    padded = like.new_zeros(_padded(out_dim), dtype=torch.float32)
-    if bias is not None:
-        padded[:out_dim] = bias.detach()
-    return padded
 
 
 class _FusedMlpFloat32(torch.autograd.Function):
@@ -67,7 +57,7 @@ class _FusedMlpFloat32(torch.autograd.Function):
     def forward(ctx, inputs: Tensor, relu: tuple[bool, ...], isa: str, *params: Tensor) -> Tensor:  # type: ignore[override]
         weights, biases = params[0::2], params[1::2]
         packed = [pack_weights_float32(w) for w in weights]
-        padded_biases = [_padded_bias(b, w.shape[0], w) for w, b in zip(weights, biases)]
+        padded_biases = [padded_bias(b, w.shape[0], w, _WIDTH_MULTIPLE) for w, b in zip(weights, biases)]
         flags = [int(r) for r in relu]
         results = torch.ops.scalar_nerf_mlp_f32.forward(
             inputs.contiguous(), [f for f, _ in packed], padded_biases, flags, weights[-1].shape[0], isa
@@ -91,12 +81,7 @@ class _FusedMlpFloat32(torch.autograd.Function):
             grad_out.float().contiguous(), activations, packed, ctx.flags, ctx.in_dim if need_input else 0, ctx.isa
         )
         grad_input = results[0] if need_input else None
-        grads: list[Optional[Tensor]] = []
-        for index, (out_dim, in_dim) in enumerate(ctx.shapes):
-            grad_wt, grad_b = results[1 + 2 * index], results[2 + 2 * index]
-            grads.append(grad_wt[:in_dim, :out_dim].t() if ctx.needs_input_grad[3 + 2 * index] else None)
-            grads.append(grad_b[:out_dim] if ctx.has_bias[index] and ctx.needs_input_grad[4 + 2 * index] else None)
-        return (grad_input, None, None, *grads)
+        return (grad_input, None, None, *layer_gradients(results, ctx.shapes, ctx.has_bias, ctx.needs_input_grad[3:]))
 
 
 def fused_mlp_float32(mlp: nn.Sequential, inputs: Tensor, isa: Optional[Float32Isa] = None) -> Tensor:
@@ -122,10 +107,7 @@ def fused_mlp_float32(mlp: nn.Sequential, inputs: Tensor, isa: Optional[Float32I
         isa = available
     elif isa == "avx2" and available != "avx2":
         raise RuntimeError("fused_mlp_float32: isa='avx2' asked for, but this CPU lacks AVX2 or FMA")
-    layers, relu = linear_layers(mlp)
-    params: list[Optional[Tensor]] = []
-    for layer in layers:
-        params.extend([layer.weight, layer.bias])
+    relu, params = mlp_arguments(mlp)
     if inputs.dtype != torch.float32 or any(p is not None and p.dtype != torch.float32 for p in params):
         raise TypeError(f"fused_mlp_float32 takes float32 inputs and parameters, got inputs in {inputs.dtype}")
-    return _FusedMlpFloat32.apply(inputs, tuple(relu), isa, *params)
+    return _FusedMlpFloat32.apply(inputs, relu, isa, *params)
