@@ -20,7 +20,7 @@ from scalar_nerfstudio.metrics import psnr
 if TYPE_CHECKING:
     from scalar_nerfstudio.pipeline import ScalarPipeline
 
-__all__ = ["SELECTING_MODES", "evaluate_fusion_modes", "markdown_table"]
+__all__ = ["SELECTING_MODES", "evaluate_fusion_modes", "markdown_table", "render_eval_images"]
 
 #: The modes whose blocks are chosen per ray by ``blocks_per_ray``.
 SELECTING_MODES = ("global", "surface", "idw")
@@ -37,10 +37,11 @@ def _eval_images(pipeline: "ScalarPipeline", max_images: Optional[int]) -> List[
     return [pairs[int(i * step)] for i in range(max_images)]
 
 
-def _render_all(pipeline: "ScalarPipeline", mode: str, blocks_per_ray: Optional[int] = None,
-                max_images: Optional[int] = None) -> Tuple[Dict[str, float], List[torch.Tensor]]:
-    """Mean metrics and ms/image of ``mode`` over the eval images (with ``blocks_per_ray`` if given);
-    returns the rendered images too."""
+def render_eval_images(pipeline: "ScalarPipeline", mode: str, blocks_per_ray: Optional[int] = None,
+                       max_images: Optional[int] = None) -> Tuple[Dict[str, float], List[torch.Tensor]]:
+    """Mean metrics and ms/image of ``mode`` over the eval images (with ``blocks_per_ray`` if given),
+    and the rendered images ``[H, W, 3]`` in [0, 1] in the eval dataloader's order. Leaves the model
+    set to ``mode``; call it under ``torch.no_grad()`` with the pipeline in eval mode."""
     model = pipeline.model
     model.set_fusion(mode)
     configured = model.config.blocks_per_ray
@@ -92,13 +93,13 @@ def evaluate_fusion_modes(
     rendered: Dict[str, List[torch.Tensor]] = {}
     with torch.no_grad():
         for mode in modes:
-            table[mode], rendered[mode] = _render_all(pipeline, mode, max_images=max_images)
+            table[mode], rendered[mode] = render_eval_images(pipeline, mode, max_images=max_images)
             if on_mode is not None:
                 on_mode(mode, table[mode])
         if not measure_selection:
             return table
         for mode in [m for m in SELECTING_MODES if m in rendered]:
-            every, images = _render_all(pipeline, mode, blocks_per_ray=0, max_images=max_images)
+            every, images = render_eval_images(pipeline, mode, blocks_per_ray=0, max_images=max_images)
             table[mode + EVERY_BLOCK] = every
             if on_mode is not None:
                 on_mode(mode + EVERY_BLOCK, every)

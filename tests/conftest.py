@@ -38,9 +38,9 @@ XDIST_WORKER = os.environ.get("PYTEST_XDIST_WORKER")
 if XDIST_WORKER is not None:
     # One thread per worker, for this process and every command it starts: two workers of 2 threads
     # each on 2 cores spin-wait for each other at every OpenMP barrier.
-    _threads = os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")
+    _workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
     _cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    os.environ.setdefault("OMP_NUM_THREADS", str(max(1, _cores // max(1, int(_threads)))))
+    os.environ.setdefault("OMP_NUM_THREADS", str(max(1, _cores // max(1, _workers))))
     os.environ.setdefault("MKL_NUM_THREADS", os.environ["OMP_NUM_THREADS"])
     torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
 

@@ -18,6 +18,8 @@ import torch
 import yaml
 from nerfstudio.utils.eval_utils import eval_setup
 
+from scalar_nerfstudio.fusion_eval import render_eval_images
+
 #: How far below its global model a fused render may score on a tiny test run (dB). The blocks start
 #: as copies of the global model and only train a few steps, so the fusion may cost a little.
 FUSION_TOLERANCE_DB = 0.3
@@ -66,18 +68,12 @@ def mean_image_psnr(pipeline) -> float:
 
 
 def eval_renders(pipeline, fusion: str | None = None) -> Tuple[Dict[str, float], list]:
-    """Mean held-out PSNR of ``pipeline`` (under ``fusion`` when given) and its eval images
-    ``[H, W, 3]`` in [0, 1], in the eval dataloader's order."""
-    if fusion is not None:
-        pipeline.model.set_fusion(fusion)
-    images, scores = [], []
+    """Mean held-out metrics of ``pipeline`` (under ``fusion``, else its configured one) and its eval
+    images ``[H, W, 3]`` in [0, 1], in the eval dataloader's order (as ``ns-eval`` renders them)."""
+    mode = fusion if fusion is not None else str(pipeline.model.fusion_mode)
     with torch.no_grad():
-        for camera, batch in pipeline.datamanager.fixed_indices_eval_dataloader:
-            outputs = pipeline.model.get_outputs_for_camera(camera=camera)
-            metrics, _ = pipeline.model.get_image_metrics_and_images(outputs, batch)
-            scores.append(float(metrics["psnr"]))
-            images.append(outputs["rgb"].clamp(0, 1).cpu().numpy())
-    return {"psnr": sum(scores) / len(scores)}, images
+        metrics, images = render_eval_images(pipeline, mode)
+    return metrics, [image.numpy() for image in images]
 
 
 def image_difference(saved: Path, rendered: np.ndarray) -> float:
