@@ -31,6 +31,7 @@
 #include <torch/library.h>
 
 #include "check.h"
+#include "mlp_common.h"
 
 #include <algorithm>
 #include <cstdint>
@@ -45,15 +46,11 @@
 
 namespace {
 
-constexpr int64_t kTile = 64;  // rows per tile; a multiple of every row block below and even
-
-struct Layer {
-  int64_t in_padded;   // Kp
-  int64_t out_padded;  // Op
-  bool relu;
-};
-
-int64_t round_up(int64_t v, int64_t m) { return (v + m - 1) / m * m; }
+using scalar_nerf_mlp_common::kTile;
+using scalar_nerf_mlp_common::Layer;
+using scalar_nerf_mlp_common::PerThreadGradients;
+using scalar_nerf_mlp_common::round_up;
+using scalar_nerf_mlp_common::threads_for;
 
 #ifdef SCALAR_NERF_MLP_X86
 #define MLP_TARGET __attribute__((target("avx512f,avx512bw,avx512vl,avx512bf16")))
@@ -308,10 +305,6 @@ std::vector<Layer> check_layers(const std::vector<at::Tensor>& weights, const st
   return layers;
 }
 
-int threads_for(int64_t tiles) {
-  return static_cast<int>(std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), tiles)));
-}
-
 // input [N, K0] float32 or bf16 -> [output float32 [N, out_dim], activations[0..L-1] bf16 [Npad, Kp_l]].
 std::vector<at::Tensor> forward(const at::Tensor& input, const std::vector<at::Tensor>& weights,
                                 const std::vector<at::Tensor>& biases, const std::vector<int64_t>& relu, int64_t out_dim) {
@@ -393,11 +386,7 @@ std::vector<at::Tensor> backward(const at::Tensor& grad_out, const std::vector<a
   const int threads = threads_for(tiles);
   const auto f32 = grad_out.options();
   at::Tensor grad_in = at::empty({in_dim > 0 ? n : 0, in_dim}, f32);
-  std::vector<at::Tensor> per_thread_wt, per_thread_b;
-  for (const Layer& ly : layers) {
-    per_thread_wt.push_back(at::zeros({threads, ly.in_padded, ly.out_padded}, f32));
-    per_thread_b.push_back(at::zeros({threads, ly.out_padded}, f32));
-  }
+  const PerThreadGradients grads(layers, threads, f32);
 #ifdef SCALAR_NERF_MLP_X86
   int64_t widest = 0;
   for (const Layer& ly : layers) widest = std::max({widest, ly.in_padded, ly.out_padded});
@@ -414,21 +403,13 @@ std::vector<at::Tensor> backward(const at::Tensor& grad_out, const std::vector<a
     s.dz32.resize(kTile / 2 * widest);
     s.a32.resize(kTile / 2 * widest);
     std::vector<float*> gwt, gb;
-    for (size_t l = 0; l < layers.size(); ++l) {
-      gwt.push_back(per_thread_wt[l].data_ptr<float>() + t * layers[l].in_padded * layers[l].out_padded);
-      gb.push_back(per_thread_b[l].data_ptr<float>() + t * layers[l].out_padded);
-    }
+    grads.slices(t, gwt, gb);
 #pragma omp for schedule(static)
     for (int64_t i = 0; i < tiles; ++i)
       backward_tile(gout, out_dim, layers, w32, acts, gin, in_dim, n, i * kTile, gwt, gb, s);
   }
 #endif
-  std::vector<at::Tensor> result{grad_in};
-  for (size_t l = 0; l < layers.size(); ++l) {
-    result.push_back(threads == 1 ? per_thread_wt[l][0] : per_thread_wt[l].sum(0));
-    result.push_back(threads == 1 ? per_thread_b[l][0] : per_thread_b[l].sum(0));
-  }
-  return result;
+  return grads.result(grad_in);
 }
 
 }  // namespace

@@ -25,6 +25,7 @@
 #include <torch/library.h>
 
 #include "check.h"
+#include "mlp_common.h"
 
 #include <algorithm>
 #include <cstdint>
@@ -39,14 +40,13 @@
 
 namespace {
 
-constexpr int64_t kTile = 64;  // rows per tile: a multiple of every row block of the kernels (4, 8)
-constexpr int64_t kWidthMultiple = 8;
+using scalar_nerf_mlp_common::kTile;  // a multiple of every row block of the kernels (4, 8)
+using scalar_nerf_mlp_common::Layer;
+using scalar_nerf_mlp_common::PerThreadGradients;
+using scalar_nerf_mlp_common::round_up;
+using scalar_nerf_mlp_common::threads_for;
 
-struct Layer {
-  int64_t in_padded;   // Kp
-  int64_t out_padded;  // Op
-  bool relu;
-};
+constexpr int64_t kWidthMultiple = 8;
 
 struct TileScratch {
   std::vector<float> dz;  // [kTile, widest] gradient of the current layer's pre-activation
@@ -106,8 +106,6 @@ Kernels kernels_for(const std::string& name) {
   return {nullptr, nullptr};
 }
 
-int64_t round_up(int64_t v, int64_t m) { return (v + m - 1) / m * m; }
-
 // Layers from the packed weights: [Kp, Op] (transposed == false, forward) or [Op, Kp] (backward).
 std::vector<Layer> check_layers(const std::vector<at::Tensor>& weights, const std::vector<int64_t>& relu, bool backward) {
   SCALAR_CHECK(!weights.empty(), "scalar_nerf_mlp_f32: need at least one layer");
@@ -133,10 +131,6 @@ std::vector<Layer> check_layers(const std::vector<at::Tensor>& weights, const st
     layers.push_back(ly);
   }
   return layers;
-}
-
-int threads_for(int64_t tiles) {
-  return static_cast<int>(std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), tiles)));
 }
 
 // input [N, K0] float32 -> [output [N, out_dim], activations[0..L-1] [Npad, Kp_l]].
@@ -216,11 +210,7 @@ std::vector<at::Tensor> backward(const at::Tensor& grad_out, const std::vector<a
   const int threads = threads_for(tiles);
   const auto f32 = grad_out.options();
   at::Tensor grad_in = at::empty({in_dim > 0 ? n : 0, in_dim}, f32);
-  std::vector<at::Tensor> per_thread_wt, per_thread_b;
-  for (const Layer& ly : layers) {
-    per_thread_wt.push_back(at::zeros({threads, ly.in_padded, ly.out_padded}, f32));
-    per_thread_b.push_back(at::zeros({threads, ly.out_padded}, f32));
-  }
+  const PerThreadGradients grads(layers, threads, f32);
   int64_t widest = 0;
   for (const Layer& ly : layers) widest = std::max({widest, ly.in_padded, ly.out_padded});
   float* gin = in_dim > 0 ? grad_in.data_ptr<float>() : nullptr;
@@ -233,20 +223,12 @@ std::vector<at::Tensor> backward(const at::Tensor& grad_out, const std::vector<a
     s.dz.resize(kTile * widest);
     s.da.resize(kTile * widest);
     std::vector<float*> gwt, gb;
-    for (size_t l = 0; l < layers.size(); ++l) {
-      gwt.push_back(per_thread_wt[l].data_ptr<float>() + t * layers[l].in_padded * layers[l].out_padded);
-      gb.push_back(per_thread_b[l].data_ptr<float>() + t * layers[l].out_padded);
-    }
+    grads.slices(t, gwt, gb);
 #pragma omp for schedule(static)
     for (int64_t i = 0; i < tiles; ++i)
       kernels.backward_tile(gout, out_dim, layers, w32, acts, gin, in_dim, n, i * kTile, gwt, gb, s);
   }
-  std::vector<at::Tensor> result{grad_in};
-  for (size_t l = 0; l < layers.size(); ++l) {
-    result.push_back(threads == 1 ? per_thread_wt[l][0] : per_thread_wt[l].sum(0));
-    result.push_back(threads == 1 ? per_thread_b[l][0] : per_thread_b[l].sum(0));
-  }
-  return result;
+  return grads.result(grad_in);
 }
 
 }  // namespace
