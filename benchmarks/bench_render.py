@@ -8,9 +8,14 @@ in alternating rounds, so a slow moment of the machine does not fall on one mode
     python benchmarks/bench_render.py --load-config outputs/bench_training/runs/castle-P30/scalar-nerf/<ts>/config.yml
     python benchmarks/bench_render.py --load-config RUN/config.yml --fusion nearest global-only --json out.json
     python benchmarks/bench_render.py --load-config RUN/config.yml --model-setting grid_alpha_skip=False grid_alpha_skip=True
+    python benchmarks/bench_render.py --load-config RUN/config.yml --size 800x600 --model-setting eval_num_rays_per_chunk=16384 eval_num_rays_per_chunk=262144
 
-``--model-setting NAME=VALUE ...`` times each setting of the models' config (the global model's and
-every block in memory) as a variant of its own, in the same alternating rounds.
+``--model-setting NAME=VALUE ...`` times each setting of the models' config (the run's model, the global
+model's and every block in memory) as a variant of its own, in the same alternating rounds.
+
+The cameras are moved to the model's device before rendering, as nerfstudio's viewer does, and on
+CUDA each time ends after ``torch.cuda.synchronize()``. ``--size WxH`` renders the eval views' poses at
+that size instead (the same horizontal field of view, centred principal point); no PSNR is printed then.
 """
 
 from __future__ import annotations
@@ -31,6 +36,7 @@ def main() -> None:
     parser.add_argument("--json", type=Path, default=None)
     parser.add_argument("--model-setting", nargs="+", default=[], metavar="NAME=VALUE",
                         help="model config settings to compare, each a variant (e.g. grid_alpha_skip=False grid_alpha_skip=True)")
+    parser.add_argument("--size", type=_parse_size, default=None, metavar="WxH", help="render the eval poses at this size (e.g. 800x600)")
     args = parser.parse_args()
 
     import torch
@@ -41,8 +47,10 @@ def main() -> None:
     _, pipeline, _, _ = eval_setup(args.load_config, test_mode="test")
     model = pipeline.model
     dataset = pipeline.datamanager.eval_dataset
-    cameras = dataset.cameras
-    targets = [dataset[i]["image"][..., :3] for i in range(len(cameras))]
+    cameras = dataset.cameras if args.size is None else _resized(dataset.cameras, *args.size)
+    cameras = cameras.to(model.device)
+    targets = [dataset[i]["image"][..., :3] for i in range(len(cameras))] if args.size is None else None
+    synchronize = torch.cuda.synchronize if model.device.type == "cuda" else (lambda: None)
     settings = [_parse_setting(text) for text in args.model_setting] or [None]
     variants = [(mode, setting) for mode in args.fusion for setting in settings]
     times: Dict[Tuple[str, object], List[float]] = {variant: [] for variant in variants}
@@ -55,26 +63,50 @@ def main() -> None:
                 _apply_setting(model, setting)
                 scores[variant] = []
                 for index in range(len(cameras)):
+                    synchronize()
                     start = time.perf_counter()
                     outputs = model.get_outputs_for_camera(cameras[index : index + 1])
+                    synchronize()
                     if round_index > 0:
                         times[variant].append(time.perf_counter() - start)
-                    scores[variant].append(float(psnr(outputs["rgb"].clamp(0.0, 1.0), targets[index].to(outputs["rgb"]))))
+                    if targets is not None:
+                        scores[variant].append(float(psnr(outputs["rgb"].clamp(0.0, 1.0), targets[index].to(outputs["rgb"]))))
     height, width = int(cameras.height[0]), int(cameras.width[0])
     results = []
-    print(f"{args.load_config}: {len(cameras)} eval views of {width}x{height}, {torch.get_num_threads()} threads, {args.rounds} rounds")
+    device = torch.cuda.get_device_name() if model.device.type == "cuda" else f"cpu, {torch.get_num_threads()} threads"
+    print(f"{args.load_config}: {len(cameras)} eval views of {width}x{height}, {device}, {args.rounds} rounds")
     for variant in variants:
         mode, setting = variant
         setting_text = None if setting is None else f"{setting[0]}={setting[1]}"
         label = mode if setting_text is None else f"{mode} {setting_text}"
         row = {"fusion": mode, "setting": setting_text,
                "median_ms": 1000 * statistics.median(times[variant]), "min_ms": 1000 * min(times[variant]),
-               "psnr": sum(scores[variant]) / len(scores[variant]), "views": len(cameras), "width": width, "height": height}
+               "psnr": sum(scores[variant]) / len(scores[variant]) if scores[variant] else None,
+               "views": len(cameras), "width": width, "height": height}
         results.append(row)
-        print(f"{label:<12} median {row['median_ms']:.0f} ms / view, fastest {row['min_ms']:.0f} ms, held-out PSNR {row['psnr']:.2f} dB")
+        score = f", held-out PSNR {row['psnr']:.2f} dB" if row["psnr"] is not None else ""
+        print(f"{label:<12} median {row['median_ms']:.1f} ms / view, fastest {row['min_ms']:.1f} ms{score}")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({"config": str(args.load_config), "threads": torch.get_num_threads(), "rounds": args.rounds, "results": results}, indent=2))
+        args.json.write_text(json.dumps({"config": str(args.load_config), "device": device, "rounds": args.rounds, "results": results}, indent=2))
+
+
+def _parse_size(text: str) -> Tuple[int, int]:
+    """"800x600" -> (800, 600)."""
+    width, separator, height = text.lower().partition("x")
+    if not separator or not width.isdigit() or not height.isdigit() or int(width) < 1 or int(height) < 1:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected WIDTHxHEIGHT, e.g. 800x600")
+    return int(width), int(height)
+
+
+def _resized(cameras, width: int, height: int):
+    """``cameras`` (pinhole) at ``width`` x ``height``: the same poses and horizontal field of view, the
+    principal point at the centre."""
+    from nerfstudio.cameras.cameras import Cameras
+
+    scale = width / cameras.width.float()
+    return Cameras(camera_to_worlds=cameras.camera_to_worlds, fx=cameras.fx * scale, fy=cameras.fy * scale,
+                   cx=width / 2.0, cy=height / 2.0, width=width, height=height, camera_type=cameras.camera_type)
 
 
 def _parse_setting(text: str) -> Tuple[str, object]:
@@ -97,11 +129,11 @@ def _apply_setting(model, setting) -> None:
     if setting is None:
         return
     name, value = setting
-    models = [module for module in model.modules() if isinstance(module, ScalarModel)]
-    for scalar_model in models:
-        if not hasattr(scalar_model.config, name):
+    models = [model] + [module for module in model.modules() if isinstance(module, ScalarModel) and module is not model]
+    for each in models:
+        if not hasattr(each.config, name):
             raise SystemExit(f"--model-setting: the model config has no {name!r}")
-        setattr(scalar_model.config, name, value)
+        setattr(each.config, name, value)
 
 
 if __name__ == "__main__":

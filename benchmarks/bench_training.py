@@ -46,12 +46,13 @@ def parse_settings(items: List[str]) -> Dict[str, object]:
 
 
 def train_one(method: str, data: str, downscale: int, seconds: float, steps: int, out: Path, settings: Dict[str, object],
-              device: str = "cpu") -> None:
+              device: str = "cpu", rays_per_batch: int = 0) -> None:
     """Train ``method`` for ``seconds`` of wall clock (or ``steps``) on ``device`` ("cpu" or "cuda"),
     evaluate, write ``out`` (JSON).
 
     Runs in a process of its own (``--worker``), so that each method starts from a fresh process.
     On "cuda" both methods train with nerfstudio's mixed precision (fp16 autocast), as ``ns-train`` does there.
+    ``rays_per_batch`` > 0 sets the rays per step of either method; 0 leaves each its default (4096).
     """
     import torch
 
@@ -60,7 +61,9 @@ def train_one(method: str, data: str, downscale: int, seconds: float, steps: int
 
     # the benchmark runner's set-up (every 8th image held out, no evaluation or checkpoints while
     # training; LPIPS stubbed out for nerfacto, whose weights would be downloaded), on ``device``
-    overrides = {"machine.device_type": device, "mixed_precision": device == "cuda", "pipeline.datamanager.train_num_rays_per_batch": 4096}
+    overrides: Dict[str, object] = {"machine.device_type": device, "mixed_precision": device == "cuda"}
+    if rays_per_batch > 0:
+        overrides["pipeline.datamanager.train_num_rays_per_batch"] = rays_per_batch
     if method == "scalar-nerf":
         overrides["max_num_iterations"] = steps
         overrides.update(settings)
@@ -86,6 +89,7 @@ def train_one(method: str, data: str, downscale: int, seconds: float, steps: int
     result = {
         "method": method,
         "steps": clock.steps,
+        "rays_per_step": rays_per_step,
         "train_seconds": clock.wall_s,
         "train_rays_per_sec": clock.steps * rays_per_step / max(clock.wall_s, 1e-9),
         "psnr": metrics["psnr"],
@@ -94,6 +98,9 @@ def train_one(method: str, data: str, downscale: int, seconds: float, steps: int
         "eval_images": num_eval,
         "threads": torch.get_num_threads(),
         "device": torch.cuda.get_device_name() if device == "cuda" else "cpu",
+        # training and evaluation together; reserved: what the caching allocator held of the GPU
+        "gpu_peak_mib": torch.cuda.max_memory_allocated() / 2**20 if device == "cuda" else None,
+        "gpu_peak_reserved_mib": torch.cuda.max_memory_reserved() / 2**20 if device == "cuda" else None,
         "near_plane": collider.near_plane,
         "reset_near_plane": collider.reset_near_plane,
         "settings": settings if method == "scalar-nerf" else {},
@@ -125,7 +132,7 @@ def run_method(method: str, args: argparse.Namespace, workdir: Path, settings: D
     out = workdir / f"{method}.json"
     steps = args.scalar_steps if method == "scalar-nerf" else 100000
     command = [sys.executable, str(Path(__file__).resolve()), "--worker", method, str(args.data), str(args.downscale),
-               str(args.minutes * 60), str(steps), str(out), json.dumps(settings), args.device]
+               str(args.minutes * 60), str(steps), str(out), json.dumps(settings), args.device, str(args.rays_per_batch)]
     print(f"[{time.strftime('%H:%M:%S')}] training {method} on {args.device} for {args.minutes} min ...", flush=True)
     subprocess.run(command, check=True, stdout=subprocess.DEVNULL if not args.verbose else None)
     return json.loads(out.read_text())
@@ -144,12 +151,14 @@ def main() -> None:
                         help="trainer-config settings for scalar-nerf, e.g. pipeline.model.occupancy_resolution=128")
     parser.add_argument("--device", choices=["cpu", "cuda"], default="cpu",
                         help="where both methods train (cuda: with nerfstudio's mixed precision, as ns-train there)")
+    parser.add_argument("--rays-per-batch", type=int, default=0,
+                        help="rays per training step for every method (0: each method's default, 4096 for both)")
     parser.add_argument("--verbose", action="store_true")
-    parser.add_argument("--worker", nargs=8, help=argparse.SUPPRESS)  # one method, in its own process (run_method)
+    parser.add_argument("--worker", nargs=9, help=argparse.SUPPRESS)  # one method, in its own process (run_method)
     args = parser.parse_args()
     if args.worker:
-        method, data, downscale, seconds, steps, out, settings, device = args.worker
-        train_one(method, data, int(downscale), float(seconds), int(steps), Path(out), json.loads(settings), device)
+        method, data, downscale, seconds, steps, out, settings, device, rays = args.worker
+        train_one(method, data, int(downscale), float(seconds), int(steps), Path(out), json.loads(settings), device, int(rays))
         return
     settings = parse_settings(args.scalar_set)  # a malformed setting is refused before anything trains
     if args.device == "cuda":
@@ -167,11 +176,11 @@ def main() -> None:
     baseline = mean_image_baseline(args.data, args.downscale)
 
     print(f"\ndevice {results[0].get('device', args.device)}; scene {args.data.name}, downscale {args.downscale}, eval every 8th image, budget {args.minutes} min, mean-image baseline {baseline:.2f} dB")
-    print(f"{'method':<14}{'steps':>7}{'train s':>9}{'rays/s':>10}{'PSNR':>8}{'SSIM':>7}{'render ms/img':>15}   PSNR / SSIM with the other near-plane rule")
+    print(f"{'method':<14}{'rays/step':>10}{'steps':>7}{'train s':>9}{'rays/s':>10}{'PSNR':>8}{'SSIM':>7}{'render ms/img':>15}   PSNR / SSIM with the other near-plane rule")
     for r in results:
         other = r["other_near_plane"]
         rule = "near plane reset to 0" if other["reset_near_plane"] else f"near plane kept at {r['near_plane']}"
-        print(f"{r['method']:<14}{r['steps']:>7}{r['train_seconds']:>9.0f}{r['train_rays_per_sec']:>10.0f}{r['psnr']:>8.2f}{r['ssim']:>7.3f}{r['render_ms_per_image']:>15.0f}"
+        print(f"{r['method']:<14}{r['rays_per_step']:>10}{r['steps']:>7}{r['train_seconds']:>9.0f}{r['train_rays_per_sec']:>10.0f}{r['psnr']:>8.2f}{r['ssim']:>7.3f}{r['render_ms_per_image']:>15.0f}"
               f"   {other['psnr']:.2f} / {other['ssim']:.3f} ({rule})")
     print(f"machine probe (hash grid fwd + bwd, 2^18 points, F=4, 2 threads; 2.8 on docs/benchmarks.md's fastest machine): "
           f"{probe['before']:.2f} M points/s before the runs, {probe['after']:.2f} after")

@@ -51,7 +51,7 @@ def global_trainer_config(method_name: str = "scalar-nerf", config_class: Type[S
             datamanager=ScalarDataManagerConfig(
                 dataparser=NerfstudioDataParserConfig(eval_mode="interval", eval_interval=8),
             ),
-            model=ScalarSceneModelConfig(eval_num_rays_per_chunk=1 << 14),
+            model=ScalarSceneModelConfig(),  # rays per render chunk: by device (device_sizes)
         ),
         # Templates: a block's table uses "block_encoder", its appearance "appearance", its fine-tuned
         # decoder "block_decoder" (the paper's 5e-5). Each schedule spans the phase its group trains in.

@@ -157,6 +157,7 @@ def _check_model(model: Any) -> None:
         if conflict is not None:
             raise OptionError(f"{prefix}cpu-decoder-kernel: {conflict}; change one of the two.")
     prefix = "--pipeline.model."
+    _at_least(model, "eval_num_rays_per_chunk", 1, prefix=prefix, optional=True)  # None: by device
     for name in ("num_samples_per_ray", "occupancy_resolution", "occupancy_update_every"):
         _at_least(model, name, 1, prefix=prefix)
     _at_least(model, "warmup_samples_per_ray", 0, " (0: num-samples-per-ray during the warm-up too)", prefix=prefix, optional=True)

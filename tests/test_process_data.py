@@ -302,6 +302,16 @@ def _refused(code: int, err: str, *words: str) -> None:
         assert word in err, err
 
 
+def test_without_pycolmap_the_command_says_how_to_install_it_and_writes_nothing(tmp_path, monkeypatch) -> None:
+    _small_photos(tmp_path / "photos")
+    monkeypatch.setattr(process_data, "sfm", None)
+    monkeypatch.setattr(process_data, "_IMPORT_ERROR", "No module named 'pycolmap'", raising=False)
+    code, _, err = _run("--images", str(tmp_path / "photos"), "--output", str(tmp_path / "scene"))
+    _refused(code, err, "pycolmap is not installed", 'pip install "scalar-nerfstudio[process]"')
+    assert not (tmp_path / "scene").exists()
+
+
+@needs_pycolmap  # without it the command stops first, saying how to install it
 def test_a_folder_without_photos_is_refused(tmp_path) -> None:
     (tmp_path / "empty").mkdir()
     (tmp_path / "empty" / "notes.txt").write_text("no photos here")
@@ -319,6 +329,7 @@ def _small_photos(folder: Path, count: int = 4, size: Tuple[int, int] = (64, 48)
         Image.fromarray(rng.integers(0, 255, (size[1], size[0], 3), dtype=np.uint8)).save(folder / f"p{i}.jpg", quality=90)
 
 
+@needs_pycolmap  # without it the command stops first, saying how to install it
 def test_a_corrupt_jpeg_is_named(tmp_path) -> None:
     _small_photos(tmp_path / "photos")
     data = (tmp_path / "photos" / "p2.jpg").read_bytes()
@@ -328,6 +339,7 @@ def test_a_corrupt_jpeg_is_named(tmp_path) -> None:
     assert "p1.jpg" not in err and not (tmp_path / "scene").exists()
 
 
+@needs_pycolmap  # without it the command stops first, saying how to install it
 def test_mixed_sizes_are_refused_and_named(tmp_path) -> None:
     _small_photos(tmp_path / "photos", count=3)
     _small_photos(tmp_path / "other", count=1, size=(48, 64))
@@ -337,6 +349,7 @@ def test_mixed_sizes_are_refused_and_named(tmp_path) -> None:
     assert not (tmp_path / "scene").exists()
 
 
+@needs_pycolmap  # without it the command stops first, saying how to install it
 def test_spatial_matching_without_gps_is_refused(tmp_path) -> None:
     _small_photos(tmp_path / "photos")
     code, _, err = _run("--images", str(tmp_path / "photos"), "--output", str(tmp_path / "scene"), "--matching", "spatial")
@@ -344,6 +357,7 @@ def test_spatial_matching_without_gps_is_refused(tmp_path) -> None:
     assert not (tmp_path / "scene").exists()
 
 
+@needs_pycolmap  # without it the command stops first, saying how to install it
 def test_an_output_that_cannot_be_written_is_an_error_not_a_traceback(tmp_path) -> None:
     _small_photos(tmp_path / "photos")
     (tmp_path / "a-file").write_text("")
@@ -352,6 +366,7 @@ def test_an_output_that_cannot_be_written_is_an_error_not_a_traceback(tmp_path) 
     assert "Traceback" not in err
 
 
+@needs_pycolmap  # without it the command stops first, saying how to install it
 def test_an_output_folder_with_other_files_or_holding_the_photos_is_refused(tmp_path) -> None:
     _small_photos(tmp_path / "photos")
     (tmp_path / "busy").mkdir()
@@ -498,8 +513,8 @@ def test_export_frame_round_trip_ply_and_obj_agrees_with_nerfstudio(tmp_path) ->
     vertex["red"] = np.arange(40)
     faces = np.array([([0, 1, 2],)], dtype=[("vertex_indices", "i4", (3,))])
     PlyData([PlyElement.describe(vertex, "vertex"), PlyElement.describe(faces, "face")], text=False).write(str(tmp_path / "mesh.ply"))
-    obj = "".join(f"v {x!r} {y!r} {z!r} 0.5 0.5 0.5\n" for x, y, z in model_points)
-    obj += "".join(f"vn {x!r} {y!r} {z!r}\n" for x, y, z in model_normals) + "f 1//1 2//2 3//3\n"
+    obj = "".join(f"v {float(x)!r} {float(y)!r} {float(z)!r} 0.5 0.5 0.5\n" for x, y, z in model_points)
+    obj += "".join(f"vn {float(x)!r} {float(y)!r} {float(z)!r}\n" for x, y, z in model_normals) + "f 1//1 2//2 3//3\n"
     (tmp_path / "mesh.obj").write_text(obj)
 
     for name in ("mesh.ply", "mesh.obj"):

@@ -4,13 +4,15 @@ mixin of :class:`~scalar_nerfstudio.models.scalar_model.ScalarModel` and
 
 from __future__ import annotations
 
+from collections import defaultdict
 from contextlib import contextmanager
-from typing import Dict, Iterator, Literal, Tuple, get_args
+from typing import Callable, Dict, Iterator, List, Literal, Tuple, get_args
 
 import torch
 from nerfstudio.cameras.rays import RayBundle
 from torch import Tensor
 
+from scalar_nerfstudio.device_sizes import render_rays_per_chunk
 from scalar_nerfstudio.model_components.rendering import EVAL_BACKGROUND
 
 RenderNormals = Literal["rays", "always", "never"]
@@ -22,6 +24,26 @@ def check_render_normals(mode: str) -> RenderNormals:
     if mode not in RENDER_NORMALS:
         raise ValueError(f"render_normals {mode!r}: expected one of {', '.join(RENDER_NORMALS)}")
     return mode  # type: ignore[return-value]
+
+
+def render_in_chunks(
+    forward: Callable[..., Dict[str, Tensor]], camera_ray_bundle: RayBundle, rays_per_chunk: int, device: torch.device
+) -> Dict[str, Tensor]:
+    """nerfstudio's camera render loop: ``forward`` on ``rays_per_chunk`` rays at a time of an
+    ``[H, W]`` camera ray bundle (moved to ``device``), each tensor output put back on the bundle's
+    device as ``[H, W, C]``."""
+    if rays_per_chunk < 1:
+        raise ValueError(f"eval_num_rays_per_chunk {rays_per_chunk}: must be >= 1")
+    input_device = camera_ray_bundle.directions.device
+    height, width = camera_ray_bundle.origins.shape[:2]
+    num_rays = len(camera_ray_bundle)
+    chunks: Dict[str, List[Tensor]] = defaultdict(list)
+    for start in range(0, num_rays, rays_per_chunk):
+        rays = camera_ray_bundle.get_row_major_sliced_ray_bundle(start, start + rays_per_chunk).to(device)
+        for name, output in forward(ray_bundle=rays).items():
+            if isinstance(output, Tensor):
+                chunks[name].append(output.to(input_device))
+    return {name: torch.cat(parts).view(height, width, -1) for name, parts in chunks.items()}
 
 
 class NormalsOutput:
@@ -69,10 +91,12 @@ class NormalsOutput:
 
     @torch.no_grad()
     def get_outputs_for_camera_ray_bundle(self, camera_ray_bundle: RayBundle) -> Dict[str, Tensor]:
-        """nerfstudio's chunked camera render, marked as a camera image (see :meth:`normals_wanted`)."""
+        """nerfstudio's chunked camera render, marked as a camera image (see :meth:`normals_wanted`),
+        in chunks of ``eval_num_rays_per_chunk`` rays (None: by the device, :func:`render_rays_per_chunk`)."""
         self._camera_renders += 1
         try:
-            return super().get_outputs_for_camera_ray_bundle(camera_ray_bundle)  # type: ignore[misc]
+            chunk = render_rays_per_chunk(self.config.eval_num_rays_per_chunk, self.device)  # type: ignore[attr-defined]
+            return render_in_chunks(self.forward, camera_ray_bundle, chunk, self.device)  # type: ignore[attr-defined]
         finally:
             self._camera_renders -= 1
 

@@ -132,6 +132,9 @@ class ScalarModelConfig(ModelConfig):
     """Weight of Mip-NeRF 360's distortion loss (0 disables it)."""
     background_color: Literal["random", "grey"] = "random"
     """Training background (random teaches opaque geometry); evaluation always uses grey."""
+    eval_num_rays_per_chunk: Optional[int] = None
+    """Rays per chunk of a camera render (eval, ns-render, the viewer); None: by the device it renders
+    on (2^14 on the CPU, 2^18 on CUDA: ``scalar_nerfstudio.device_sizes``)."""
     render_normals: RenderNormals = "rays"
     """When the ``normals`` output (in [0, 1]) is computed outside training: "rays" for ray batches
     (ns-export) but not camera images, "always" also for camera images (the viewer), "never"."""

@@ -18,8 +18,9 @@ from typing import List, Optional, Sequence
 
 from scalar_nerfstudio.runs import run_config_path
 
-#: Library warnings (deprecations inside torch, nerfstudio, websockets) that are not the user's business.
-QUIET_WARNINGS = "ignore::FutureWarning,ignore::DeprecationWarning,ignore::UserWarning"
+#: Library warnings (deprecations inside torch, nerfstudio, websockets; nerfstudio's docstring escapes that
+#: Python 3.12 flags when it compiles them) that are not the user's business.
+QUIET_WARNINGS = "ignore::FutureWarning,ignore::DeprecationWarning,ignore::UserWarning,ignore::SyntaxWarning"
 
 
 def quiet_environment(base: Optional[dict] = None) -> dict:
