@@ -135,6 +135,7 @@ def main() -> None:
     parser.add_argument("--scalar-steps", type=int, default=1800, help="scalar-nerf run length (sets its lr schedule)")
     parser.add_argument("--nerfacto", action="store_true", help="also train nerfacto (training part)")
     parser.add_argument("--device", default="cpu", help=argparse.SUPPRESS)  # bench_training's worker reads it
+    parser.add_argument("--rays-per-batch", type=int, default=0, help=argparse.SUPPRESS)  # likewise (0: the default 4096)
     parser.add_argument("--verbose", action="store_true")
     parser.add_argument("--workdir", type=Path, default=Path("outputs/bench_decoder_kernels"))
     args = parser.parse_args()
