@@ -1,6 +1,6 @@
-"""When a nerfstudio model adds the ``normals`` output, and its RGBA image (:class:`NormalsOutput`, a
-mixin of :class:`~scalar_nerfstudio.models.scalar_model.ScalarModel` and
-:class:`~scalar_nerfstudio.models.scene_model.ScalarSceneModel`)."""
+"""When a nerfstudio model adds the ``normals`` output, its RGBA image, and the chunked loop of its camera
+renders (:class:`NormalsOutput`, a mixin of :class:`~scalar_nerfstudio.models.scalar_model.ScalarModel`
+and :class:`~scalar_nerfstudio.models.scene_model.ScalarSceneModel`; :func:`render_in_chunks`)."""
 
 from __future__ import annotations
 
