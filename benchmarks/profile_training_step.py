@@ -15,6 +15,16 @@ from pathlib import Path
 import torch
 
 
+def kernel_settings(kernel: str) -> dict:
+    """Config overrides for one decoder kernel; ``torch`` is the unfused float32 reference."""
+    if kernel == "auto":
+        return {}
+    settings = {"pipeline.model.field.cpu_decoder_kernel": kernel}
+    if kernel == "torch":
+        settings["pipeline.model.field.decoder_precision"] = "float32"
+    return settings
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, default=Path("../shared/data/castle-P30"))
@@ -22,6 +32,8 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=300)
     parser.add_argument("--profile-step", type=int, default=280)
     parser.add_argument("--output-dir", type=Path, default=Path("outputs/profile_training_step"))
+    parser.add_argument("--cpu-decoder-kernel", choices=["auto", "avx512bf16", "avx2", "torch"], default="auto",
+                        help="the decoder's CPU training kernel (torch: layer by layer in float32)")
     args = parser.parse_args()
 
     from scalar_nerfstudio.engine.timing import time_train_iterations
@@ -30,7 +42,7 @@ def main() -> None:
     # the benchmark's trainer set-up: eval every 8th image, no evaluation or checkpoints while training
     config = trainer_config({
         "method": "scalar-nerf", "data": str(args.data), "downscale": args.downscale, "output_dir": str(args.output_dir),
-        "overrides": {"max_num_iterations": args.steps},
+        "overrides": {"max_num_iterations": args.steps, **kernel_settings(args.cpu_decoder_kernel)},
     })
     config.set_timestamp()
     trainer = setup_trainer(config)
