@@ -225,6 +225,25 @@ def trained_castle_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return built_once(tmp_path_factory, "castle_run", train)
 
 
+# --------------------------------------------------------- the bad-input tests' scenes (bad_scenes.py)
+
+
+@pytest.fixture(scope="module")
+def good_scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The 6-image courtyard the bad-input tests break, one per test module."""
+    from bad_scenes import write_good_scene
+
+    return write_good_scene(tmp_path_factory.mktemp("good"))
+
+
+@pytest.fixture(scope="module")
+def mixed_scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A 10-image scene with grayscale, RGBA, palette and 16-bit images among the RGB ones."""
+    from bad_scenes import write_mixed_scene
+
+    return write_mixed_scene(tmp_path_factory.mktemp("mixed"))
+
+
 # ------------------------------------------------- a tiny run through every phase (blocks, fusion)
 
 GLOBAL_STEPS, BLOCK_STEPS, NUM_BLOCKS = 100, 30, 2  # the time goes into starting ns-train, not into these steps

@@ -21,19 +21,7 @@ from scalar_nerfstudio.config_checks import OptionError, check_block_plan, check
 from scalar_nerfstudio.scenes.courtyard import write_scene
 from scalar_nerfstudio.data.validation import SceneError, check_scene, scan_scene, to_rgb_array
 
-from bad_scenes import (CASES, broken_copy, image_file, read_transforms, truncated_jpeg, val_list_missing, write_good_scene, write_mixed_scene,
-                        write_transforms)
-
-
-@pytest.fixture(scope="module")
-def good_scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return write_good_scene(tmp_path_factory.mktemp("good"))
-
-
-@pytest.fixture(scope="module")
-def mixed_scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A 10-image scene with grayscale, RGBA, palette and 16-bit images among the RGB ones."""
-    return write_mixed_scene(tmp_path_factory.mktemp("mixed"))
+from bad_scenes import CASES, broken_copy, image_file, read_transforms, truncated_jpeg, val_list_missing, write_transforms
 
 
 #: More of each message, checked in the unit test.

@@ -16,19 +16,8 @@ import pytest
 
 from scalar_nerfstudio.data.validation import SceneError, scan_scene
 
-from bad_scenes import CASES, broken_copy, truncated_jpeg, write_good_scene, write_mixed_scene
+from bad_scenes import CASES, broken_copy, truncated_jpeg
 from conftest import ns_train_command, run_dirs
-
-
-@pytest.fixture(scope="module")
-def good_scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return write_good_scene(tmp_path_factory.mktemp("good"))
-
-
-@pytest.fixture(scope="module")
-def mixed_scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A 10-image scene with grayscale, RGBA, palette and 16-bit images among the RGB ones."""
-    return write_mixed_scene(tmp_path_factory.mktemp("mixed"))
 
 
 # ------------------------------------------------------------------------- ns-train, end to end
