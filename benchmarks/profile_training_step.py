@@ -13,16 +13,7 @@ import argparse
 from pathlib import Path
 
 import torch
-
-
-def kernel_settings(kernel: str) -> dict:
-    """Config overrides for one decoder kernel; ``torch`` is the unfused float32 reference."""
-    if kernel == "auto":
-        return {}
-    settings = {"pipeline.model.field.cpu_decoder_kernel": kernel}
-    if kernel == "torch":
-        settings["pipeline.model.field.decoder_precision"] = "float32"
-    return settings
+from bench_decoder_kernels import PATHS  # the decoder paths' config settings (same directory)
 
 
 def main() -> None:
@@ -32,8 +23,8 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=300)
     parser.add_argument("--profile-step", type=int, default=280)
     parser.add_argument("--output-dir", type=Path, default=Path("outputs/profile_training_step"))
-    parser.add_argument("--cpu-decoder-kernel", choices=["auto", "avx512bf16", "avx2", "torch"], default="auto",
-                        help="the decoder's CPU training kernel (torch: layer by layer in float32)")
+    parser.add_argument("--decoder-path", choices=["auto", *PATHS], default="auto",
+                        help="the decoder's CPU training path, as bench_decoder_kernels.py names them (auto: the config's)")
     args = parser.parse_args()
 
     from scalar_nerfstudio.engine.timing import time_train_iterations
@@ -42,7 +33,7 @@ def main() -> None:
     # the benchmark's trainer set-up: eval every 8th image, no evaluation or checkpoints while training
     config = trainer_config({
         "method": "scalar-nerf", "data": str(args.data), "downscale": args.downscale, "output_dir": str(args.output_dir),
-        "overrides": {"max_num_iterations": args.steps, **kernel_settings(args.cpu_decoder_kernel)},
+        "overrides": {"max_num_iterations": args.steps, **(PATHS[args.decoder_path][0] if args.decoder_path != "auto" else {})},
     })
     config.set_timestamp()
     trainer = setup_trainer(config)
