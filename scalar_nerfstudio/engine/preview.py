@@ -34,13 +34,29 @@ def _png_bytes(image: np.ndarray) -> bytes:
     return buffer.getvalue()
 
 
+def preview_scale(width: int, height: int, max_size: int) -> float:
+    """The factor that brings a ``width`` x ``height`` view's longer side to at most ``max_size``
+    pixels (1.0 when it is within it, or when ``max_size`` <= 0: the full size)."""
+    longest = max(int(width), int(height))
+    if max_size <= 0 or longest <= max_size:
+        return 1.0
+    return max_size / longest
+
+
 @torch.no_grad()
-def write_preview(pipeline, run_dir: Path, step: int) -> Tuple[Path, float]:
+def write_preview(pipeline, run_dir: Path, step: int, max_size: int = 512) -> Tuple[Path, float]:
     """Render the first eval view with the pipeline's model (its current fusion) beside the ground
-    truth; returns (the preview's path, the render's PSNR in dB)."""
+    truth, its longer side at most ``max_size`` pixels (0: the eval image's size); returns (the
+    preview's path, the render's PSNR in dB against the ground truth at that size).
+
+    The bound keeps a preview cheap at real resolutions: rendering costs per pixel, and a
+    4000 x 3000 view takes minutes on a CPU."""
     datamanager = pipeline.datamanager
     dataset = datamanager.eval_dataset
     camera = dataset.cameras[0:1].to(pipeline.device)
+    scale = preview_scale(int(camera.width[0, 0]), int(camera.height[0, 0]), max_size)
+    if scale < 1.0:
+        camera.rescale_output_resolution(scale)  # fields reassigned on this copy; the dataset's cameras are untouched
     model = pipeline.model
     was_training = model.training
     model.eval()

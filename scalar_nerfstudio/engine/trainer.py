@@ -51,6 +51,9 @@ class ScalarTrainerConfig(TrainerConfig):
     steps_per_preview: int = 500
     """Every this many steps and at the last, render the first eval view beside its ground truth into
     RUN/preview.png and RUN/previews/, and log its PSNR; 0: never."""
+    preview_max_size: int = 512
+    """Longest side of the preview in pixels: a larger eval view is rendered smaller, so a preview of
+    a full-resolution photo costs seconds, not minutes; 0: the eval image's size."""
     adapt_threads: bool = True
     """CPU training: every few seconds, use as many threads as there are cores not busy with other
     processes; off, or OMP_NUM_THREADS set: torch's thread count is left alone."""
@@ -223,7 +226,7 @@ class ScalarTrainer(Trainer):
         result = super().train_iteration(step)
         every = self.config.steps_per_preview
         if every > 0 and ((step + 1) % every == 0 or step + 1 == self._total_steps):
-            path, psnr = write_preview(self.pipeline, self.base_dir, step)
+            path, psnr = write_preview(self.pipeline, self.base_dir, step, self.config.preview_max_size)
             CONSOLE.print(f"step {step + 1}: preview (render | ground truth, eval view 0, {psnr:.2f} dB) written to {path}")
         phase = self.phased_pipeline.phase_at(step)
         if step + 1 == min(phase.end_step, self._total_steps):  # a run may end before its phase's planned end
