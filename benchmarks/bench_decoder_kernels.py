@@ -52,9 +52,22 @@ def runnable_paths() -> List[str]:
     return [name for name in PATHS if ok[name]]
 
 
+def decoder_gflop(points: int, hidden_dim: int) -> float:
+    """Multiply-add work of one decoder pass in ``decoder_part`` (GFLOP, 2 per multiply-add): every layer's
+    forward and weight gradient, and the input gradient of all but the first density layer (the
+    benchmark's encoder features take no gradient). Layer sizes as :class:`Decoder` builds them."""
+    density = [(64, hidden_dim), (hidden_dim, 16)]
+    colour = [(15 + 16 + 8, hidden_dim), (hidden_dim, hidden_dim), (hidden_dim, 3)]
+    products = sum(i * o for i, o in density + colour)
+    return 2.0 * points * (3 * products - 64 * hidden_dim) / 1e9
+
+
 def decoder_part(args: argparse.Namespace, paths: List[str]) -> None:
+    from scalar_nerfstudio.engine.allocator import keep_freed_memory
     from scalar_nerfstudio.fields.scalar_field import Decoder
 
+    if not args.fresh_pages:
+        keep_freed_memory()  # malloc as training sets it: freed buffers are reused, not faulted in again
     generator = torch.Generator().manual_seed(0)
     features = torch.randn(args.points, 64, generator=generator)
     extra = torch.randn(args.points, 24, generator=generator)
@@ -75,6 +88,7 @@ def decoder_part(args: argparse.Namespace, paths: List[str]) -> None:
         return step
 
     steps = {name: step_for(name) for name in paths}
+    gflop = decoder_gflop(args.points, args.hidden_dim)
     for step in steps.values():  # warm-up (first-call allocations, the extension's build)
         step()
     times: Dict[str, List[float]] = {name: [] for name in paths}
@@ -84,10 +98,13 @@ def decoder_part(args: argparse.Namespace, paths: List[str]) -> None:
             step()
             times[name].append(time.perf_counter() - start)
     median = {name: statistics.median(t) for name, t in times.items()}
+    malloc = "glibc's defaults (fresh pages)" if args.fresh_pages else "training's settings"
     print(f"decoder forward + backward, {args.points} points, hidden width {args.hidden_dim}, "
-          f"{torch.get_num_threads()} threads, median of {args.repeats} rounds (paths take turns):")
+          f"{torch.get_num_threads()} threads, malloc {malloc}, median of {args.repeats} rounds (paths take turns):")
     for name in paths:
-        print(f"  {name:<15}{median[name] * 1000:9.1f} ms   {median['torch-float32'] / median[name]:5.2f}x torch-float32")
+        print(f"  {name:<15}{median[name] * 1000:9.1f} ms   {median['torch-float32'] / median[name]:5.2f}x torch-float32"
+              f"   {gflop / median[name]:6.1f} GFLOP/s")
+    print(f"  ({gflop:.2f} GFLOP per pass: forward, weight and input gradients of the unpadded layers)")
     if "avx2" in median and "avx512bf16" in median:
         print(f"  avx512bf16 / avx2: {median['avx2'] / median['avx512bf16']:.2f}x")
 
@@ -99,7 +116,7 @@ def training_part(args: argparse.Namespace, paths: List[str]) -> None:
 
     if args.data is None:
         raise SystemExit("bench_decoder_kernels: --part training needs --data (a nerfstudio scene folder)")
-    runs = [(name, "scalar-nerf", PATHS[name][0]) for name in paths] + ([("nerfacto", "nerfacto", {})] if args.nerfacto else [])
+    runs = [(name, "scalar-nerf", {**PATHS[name][0], "machine.seed": args.seed}) for name in paths] + ([("nerfacto", "nerfacto", {})] if args.nerfacto else [])
     probe_before = hash_grid_speed()
     results = {}
     for label, method, settings in runs:
@@ -107,7 +124,7 @@ def training_part(args: argparse.Namespace, paths: List[str]) -> None:
         workdir.mkdir(parents=True, exist_ok=True)
         results[label] = bench_training.run_method(method, args, workdir, settings)
     probe_after = hash_grid_speed()
-    print(f"\nscene {args.data.name}, downscale {args.downscale}, {args.minutes} min per run, {torch.get_num_threads()} threads; "
+    print(f"\nscene {args.data.name}, downscale {args.downscale}, {args.minutes} min per run, seed {args.seed}, {torch.get_num_threads()} threads; "
           f"machine probe {probe_before:.2f} M points/s before, {probe_after:.2f} after")
     print(f"{'path':<16}{'steps':>7}{'rays/s':>10}{'PSNR':>8}{'SSIM':>7}   ratios")
     reference = results.get("torch-float32")
@@ -129,10 +146,14 @@ def main() -> None:
     parser.add_argument("--points", type=int, default=150_000, help="samples per decoder pass (decoder part)")
     parser.add_argument("--hidden-dim", type=int, default=64, help="decoder width in neurons (decoder part)")
     parser.add_argument("--repeats", type=int, default=7, help="timed rounds (decoder part)")
+    parser.add_argument("--fresh-pages", action="store_true",
+                        help="decoder part: leave glibc's malloc at its defaults, so large buffers are faulted in afresh on "
+                             "every pass (the default keeps freed memory, as training does: engine/allocator.py)")
     parser.add_argument("--data", type=Path, default=None, help="nerfstudio scene folder (training part)")
     parser.add_argument("--downscale", type=int, default=4)
     parser.add_argument("--minutes", type=float, default=4.0, help="training wall-clock budget per run (training part)")
     parser.add_argument("--scalar-steps", type=int, default=1800, help="scalar-nerf run length (sets its lr schedule)")
+    parser.add_argument("--seed", type=int, default=42, help="machine.seed of every scalar-nerf run (training part; 42 is nerfstudio's default)")
     parser.add_argument("--nerfacto", action="store_true", help="also train nerfacto (training part)")
     parser.add_argument("--device", default="cpu", help=argparse.SUPPRESS)  # bench_training's worker reads it
     parser.add_argument("--rays-per-batch", type=int, default=0, help=argparse.SUPPRESS)  # likewise (0: the default 4096)
