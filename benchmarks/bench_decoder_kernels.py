@@ -52,14 +52,15 @@ def runnable_paths() -> List[str]:
     return [name for name in PATHS if ok[name]]
 
 
-def decoder_gflop(points: int, hidden_dim: int) -> float:
-    """Multiply-add work of one decoder pass in ``decoder_part`` (GFLOP, 2 per multiply-add): every layer's
-    forward and weight gradient, and the input gradient of all but the first density layer (the
-    benchmark's encoder features take no gradient). Layer sizes as :class:`Decoder` builds them."""
-    density = [(64, hidden_dim), (hidden_dim, 16)]
-    colour = [(15 + 16 + 8, hidden_dim), (hidden_dim, hidden_dim), (hidden_dim, 3)]
-    products = sum(i * o for i, o in density + colour)
-    return 2.0 * points * (3 * products - 64 * hidden_dim) / 1e9
+def decoder_gflop(decoder: torch.nn.Module, points: int) -> float:
+    """Multiply-add work of one pass of ``decoder`` in ``decoder_part`` (GFLOP, 2 per multiply-add):
+    every layer's forward and weight gradient, and the input gradient of all but the first density
+    layer (the benchmark's encoder features take no gradient)."""
+    density = [m for m in decoder.density_mlp if isinstance(m, torch.nn.Linear)]
+    colour = [m for m in decoder.colour_mlp if isinstance(m, torch.nn.Linear)]
+    products = sum(m.in_features * m.out_features for m in density + colour)
+    first = density[0].in_features * density[0].out_features
+    return 2.0 * points * (3 * products - first) / 1e9
 
 
 def decoder_part(args: argparse.Namespace, paths: List[str]) -> None:
@@ -72,11 +73,14 @@ def decoder_part(args: argparse.Namespace, paths: List[str]) -> None:
     features = torch.randn(args.points, 64, generator=generator)
     extra = torch.randn(args.points, 24, generator=generator)
 
+    def make_decoder(kernel: str) -> Decoder:
+        torch.manual_seed(0)
+        return Decoder(in_dim=64, hidden_dim=args.hidden_dim, geo_feat_dim=15, direction_dim=16, appearance_dim=8,
+                       density_bias=-4.0, training_kernel=kernel)
+
     def step_for(name: str) -> Callable[[], None]:
         _, kernel, bf16 = PATHS[name]
-        torch.manual_seed(0)
-        decoder = Decoder(in_dim=64, hidden_dim=args.hidden_dim, geo_feat_dim=15, direction_dim=16, appearance_dim=8,
-                          density_bias=-4.0, training_kernel=kernel)
+        decoder = make_decoder(kernel)
 
         def step() -> None:
             decoder.zero_grad(set_to_none=True)
@@ -88,7 +92,7 @@ def decoder_part(args: argparse.Namespace, paths: List[str]) -> None:
         return step
 
     steps = {name: step_for(name) for name in paths}
-    gflop = decoder_gflop(args.points, args.hidden_dim)
+    gflop = decoder_gflop(make_decoder("torch"), args.points)
     for step in steps.values():  # warm-up (first-call allocations, the extension's build)
         step()
     times: Dict[str, List[float]] = {name: [] for name in paths}
