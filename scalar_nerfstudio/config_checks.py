@@ -19,6 +19,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any, Optional, TypeGuard
 
+from scalar_nerfstudio.blocks.length import LengthError, parse_duration
 from scalar_nerfstudio.fields.decoder_kernels import kernel_conflict
 
 __all__ = ["OptionError", "check_block_plan", "check_options", "check_output_dir", "check_pipeline_options", "check_trainer_options"]
@@ -90,11 +91,12 @@ def check_pipeline_options(pipeline: Any, num_train_images: Optional[int] = None
     seed = getattr(pipeline, "split_seed", 0)
     if not _is_int(seed) or not 0 <= seed < 2**32:
         raise OptionError(f"--pipeline.split-seed {_show(seed)}: must be a whole number in [0, 2^32).")
-    _at_least(pipeline, "global_steps", 0)
-    _at_least(pipeline, "block_steps", 0)
+    _at_least(pipeline, "global_steps", 0, " (or left out: planned from the capture or --pipeline.time-budget)", optional=True)
+    _at_least(pipeline, "block_steps", 0, " (or left out: planned from the capture or --pipeline.time-budget)", optional=True)
     if getattr(pipeline, "global_steps", 1) == 0 and (getattr(pipeline, "block_steps", 1) == 0 or not getattr(pipeline, "train_blocks", True)):
         raise OptionError("--pipeline.global-steps 0 leaves nothing to train (the blocks get no steps either); give the global "
                           "phase (--pipeline.global-steps) or the blocks (--pipeline.block-steps, --pipeline.train-blocks True) some steps.")
+    _check_length(pipeline)
     restart = getattr(pipeline, "one_model_restart", 0.0)
     if isinstance(restart, bool) or not isinstance(restart, (int, float)) or not (math.isfinite(restart) and 0.0 <= restart < 1.0):
         raise OptionError(f"--pipeline.one-model-restart {_show(restart)}: must be a number in [0, 1) (the share of a one-model "
@@ -114,6 +116,24 @@ def check_pipeline_options(pipeline: Any, num_train_images: Optional[int] = None
     _check_data(getattr(pipeline, "datamanager", None))
     if num_train_images is not None:
         check_block_counts(pipeline, num_train_images, num_frames)
+
+
+def _check_length(pipeline: Any) -> None:
+    """The options a run's length is planned from (blocks/length.py)."""
+    budget = getattr(pipeline, "time_budget", None)
+    if budget is not None:
+        try:
+            parse_duration(budget)
+        except LengthError as error:
+            raise OptionError(f"--pipeline.time-budget {budget}: {error}.") from None
+        if getattr(pipeline, "global_steps", None) is not None and getattr(pipeline, "block_steps", None) is not None:
+            raise OptionError(f"--pipeline.time-budget {budget} with --pipeline.global-steps and --pipeline.block-steps: the budget "
+                              "plans the steps; leave one of the step counts out (or the budget).")
+    for name in ("rays_per_pixel", "block_rays_per_pixel"):
+        value = getattr(pipeline, name, 1.0)
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value > 0):
+            raise OptionError(f"{_flag(name)} {_show(value)}: must be a number > 0 (how often a phase draws each pixel on average).")
+    _at_least(pipeline, "block_workers", 1, " (blocks that train at once, on other processes or machines)")
 
 
 def check_block_counts(pipeline: Any, num_train_images: int, num_frames: Optional[int] = None) -> None:

@@ -22,6 +22,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from torch.cuda.amp.grad_scaler import GradScaler
 
 from scalar_nerfstudio.blocks.capacity import BlockCapacity, LayoutScale, auto_num_blocks, layout_scale
+from scalar_nerfstudio.blocks.length import LengthSettings, TrainingLength, parse_duration, plan_length
 from scalar_nerfstudio.blocks.observation import block_observation
 from scalar_nerfstudio.blocks.plan import BlockPlan, PlanSettings, load_plan, plan_blocks
 from scalar_nerfstudio.blocks.split import BlockSplit, BlockSplitError, load_blocks_json
@@ -74,10 +75,24 @@ class ScalarPipelineConfig(VanillaPipelineConfig):
     """KMeans seed of the split."""
     min_images_per_block: int = 2
     """A split that leaves a block with fewer training images is refused (images)."""
-    global_steps: int = 2000
-    """Steps of the global phase."""
-    block_steps: int = 1000
-    """Steps of each block's phase."""
+    global_steps: Optional[int] = None
+    """Steps of the global phase. None: planned, from the capture (about rays-per-pixel rays for every training
+    pixel, at least 2000 steps) or, with time-budget, to fit the budget."""
+    block_steps: Optional[int] = None
+    """Steps of each block's phase. None: planned, from the capture (about block-rays-per-pixel rays for every
+    pixel of a block's images, at least 1000 steps) or, with time-budget, to fit the budget."""
+    time_budget: Optional[str] = None
+    """Wall-clock budget of the whole run, like 90s, 45m, 2h or 1h30m: the steps not given are planned to fit it
+    at the pace measured in the run's first steps (the blocks' once more when the global phase ends).
+    None: the steps are planned from the capture."""
+    rays_per_pixel: float = 0.5
+    """Without a budget, the global phase trains this many rays per training pixel (steps = this x pixels / rays
+    per batch, 2000 to 200000)."""
+    block_rays_per_pixel: float = 1.0
+    """Without a budget, a block's phase trains this many rays per pixel of its images (1000 to 200000 steps)."""
+    block_workers: int = 1
+    """Blocks that will train at once (scalar-nerf-train-blocks on several processes or machines): a time budget
+    then gives each block this many times the share it has on one machine."""
     decoder_mode: DecoderMode = "finetune"
     """Local decoders: finetune a copy of the global decoder (its rate: --optimizers.block-decoder),
     keep it frozen, or train a fresh one (independent)."""
@@ -87,9 +102,10 @@ class ScalarPipelineConfig(VanillaPipelineConfig):
     lr_schedule: LrSchedule = "restart"
     """restart: the global model holds its learning rates after its warm-up when blocks follow, each
     block warms up and decays over its phase; per-phase: every phase warms up and decays over its steps."""
-    one_model_restart: float = 0.5
+    one_model_restart: float = 0.0
     """A run of one model (K = 1, lr-schedule restart) holds its rates for this share of its steps
-    (0 to 1), then restarts them at the block templates' rates and decays; 0: one decay over the run."""
+    (0 to 1), then restarts them at the block templates' rates and decays; 0: one decay over the run (a
+    restart can end a run below its own earlier evaluations)."""
     scene_radius_from_depth: bool = True
     """A new run on a scene with depth images, without --pipeline.model.scene-radius, ends its rays at
     a sphere fitted to them (radius recorded in config.yml); False: rays run to the far plane."""
@@ -123,14 +139,23 @@ class ScalarPipelineConfig(VanillaPipelineConfig):
         """The automatic K for a camera layout of ``num_images`` training images (blocks/capacity.py)."""
         return auto_num_blocks(scale, self.model.field.log2_hashmap_size, num_images, self.auto_min_images_per_block, self.max_auto_blocks)
 
-    def phases(self, num_blocks: int, train_blocks: Optional[bool] = None) -> List[Phase]:
-        """The training phases, in order, for a split into ``num_blocks`` blocks (``train_blocks``
-        overrides the config's, e.g. False when the automatic K is 1)."""
+    def length_settings(self) -> LengthSettings:
+        """The options a run's length is planned from (blocks/length.py); a scalar-nerf-block run plans its one block."""
+        return LengthSettings(
+            global_steps=0 if self.only_block is not None else self.global_steps, block_steps=self.block_steps,
+            time_budget_s=None if self.time_budget is None else parse_duration(self.time_budget),
+            rays_per_batch=self.datamanager.train_num_rays_per_batch, rays_per_pixel=self.rays_per_pixel,
+            block_rays_per_pixel=self.block_rays_per_pixel, block_workers=self.block_workers,
+        )
+
+    def phases(self, num_blocks: int, length: TrainingLength, train_blocks: Optional[bool] = None) -> List[Phase]:
+        """The training phases, in order, for a split into ``num_blocks`` blocks trained for ``length``
+        (``train_blocks`` overrides the config's, e.g. False when the automatic K is 1)."""
         if self.only_block is not None:
-            return [Phase(self.only_block, 0, self.block_steps)]
-        phases = [Phase(None, 0, self.global_steps)]
+            return [Phase(self.only_block, 0, length.block_steps)]
+        phases = [Phase(None, 0, length.global_steps)]
         if self.train_blocks if train_blocks is None else train_blocks:
-            phases += [Phase(k, self.global_steps + k * self.block_steps, self.block_steps) for k in range(num_blocks)]
+            phases += [Phase(k, length.global_steps + k * length.block_steps, length.block_steps) for k in range(num_blocks)]
         return phases
 
 
@@ -163,7 +188,7 @@ class ScalarPipeline(VanillaPipeline):
         parsed = self.datamanager.train_dataparser_outputs
         self.plan: BlockPlan = self._block_plan(parsed)
         block_ids = self.plan.held_blocks
-        self.phases: List[Phase] = config.phases(self.split.num_blocks, train_blocks=False if self.plan.single_model else None)
+        self.phases: List[Phase] = self._phases()
         # A new run (one that has started reads its radius, or none, back from its config.yml).
         if config.run_plan is None and config.scene_radius_from_depth and config.model.scene_radius is None:
             config.model.scene_radius = scene_radius_logged(parsed)
@@ -197,7 +222,8 @@ class ScalarPipeline(VanillaPipeline):
 
     # ---------------------------------------------------------------------------- set-up
     def _block_plan(self, parsed) -> BlockPlan:
-        """The run's own plan when it has one (``run_plan``), else one decided from the parsed cameras."""
+        """The run's own plan when it has one (``run_plan``), else one decided from the parsed cameras
+        (its length planned from the capture: provisional when a time budget waits for the pace)."""
         names = training_image_names(parsed.image_filenames, self.config.datamanager.data)
         if self.config.run_plan is not None:
             plan = load_plan(Path(self.config.run_plan))
@@ -206,6 +232,8 @@ class ScalarPipeline(VanillaPipeline):
                     f"{self.config.run_plan} was planned for {len(plan.image_names)} training images, but "
                     f"{len(names)} are parsed from {self.config.datamanager.data} (different scene or dataparser options)"
                 )
+            if plan.length is None:  # a run from before lengths were planned: its config.yml has the steps
+                plan = replace(plan, length=TrainingLength(int(self.config.global_steps or 0), int(self.config.block_steps or 0), "given"))
             return plan
         given = None
         if self.config.blocks_json is not None:
@@ -215,7 +243,41 @@ class ScalarPipeline(VanillaPipeline):
                     f"{self.config.blocks_json} lists {len(given_names)} training images that differ from the "
                     f"{len(names)} parsed from {self.config.datamanager.data} (different scene or dataparser options)"
                 )
-        return plan_blocks(*camera_layout(parsed), image_names=names, settings=self.config.plan_settings(), given_split=given)
+        layout = camera_layout(parsed)
+        plan = plan_blocks(*layout, image_names=names, settings=self.config.plan_settings(), given_split=given)
+        pixels = [int(p) for p in layout.image_pixels]
+        blocks = [plan.split.blocks[k] for k in plan.held_blocks] if not plan.single_model else []
+        block_pixels = [sum(pixels[i] for i in block.image_indices) for block in blocks]
+        return replace(plan, length=plan_length(self.config.length_settings(), sum(pixels), block_pixels))
+
+    def _phases(self) -> List[Phase]:
+        assert self.plan.length is not None
+        return self.config.phases(self.split.num_blocks, self.plan.length, train_blocks=False if self.plan.single_model else None)
+
+    @property
+    def length(self) -> TrainingLength:
+        """How long the run trains (the plan's; a time budget's is provisional until the trainer measures the pace)."""
+        assert self.plan.length is not None
+        return self.plan.length
+
+    def set_length(self, length: TrainingLength) -> None:
+        """Train for ``length`` from now on (a time budget's plan, measured): the phases follow it. Only
+        phases that have not started may change their start (the trainer re-plans the blocks before the
+        first of them)."""
+        self.plan = replace(self.plan, length=length)
+        self.phases = self._phases()
+
+    def length_settings(self) -> LengthSettings:
+        """The options the run's length is planned from."""
+        return self.config.length_settings()
+
+    @property
+    def num_blocks_following(self) -> int:
+        """Blocks that train after the global model, in this run or in scalar-nerf-block runs (a time budget
+        plans for them); a scalar-nerf-block run: its one block."""
+        if self.config.only_block is not None:
+            return 1
+        return len(self.plan.held_blocks) if self._blocks_follow_global_model() else 0
 
     def _block_observation(self, parsed) -> Optional[torch.Tensor]:
         """[K, G^3] the cells of a coarse grid each block's training cameras observe (None for K = 1)."""

@@ -5,11 +5,12 @@ from __future__ import annotations
 
 from typing import Dict, Optional, Sequence
 
+from scalar_nerfstudio.blocks.length import TrainingLength, format_duration
 from scalar_nerfstudio.blocks.plan import BlockPlan
 from scalar_nerfstudio.blocks.split import format_split_table
 from scalar_nerfstudio.engine.contract import Phase
 
-__all__ = ["format_eval_metrics", "format_plan_report", "sequential_blocks_hint"]
+__all__ = ["format_eval_metrics", "format_length", "format_plan_report", "sequential_blocks_hint"]
 
 #: What the plan report says of a block's start, per ``--pipeline.block-init``.
 _BLOCK_START = {"global": " (starts as a copy of the global model)", "fitted": " (its table fitted to the global model first)"}
@@ -37,10 +38,31 @@ def format_plan_report(plan: BlockPlan, phases: Sequence[Phase], log2_hashmap_si
     for index, capacity in plan.capacities.items():
         lines.append(f"block {index}: table 2^{capacity.log2_hashmap_size}, finest resolution {capacity.max_resolution}{start}")
     lines.append("phases: " + ", ".join(f"{p.name}: steps {p.start_step}-{p.end_step - 1}" for p in phases if p.num_steps > 0))
+    if plan.length is not None:
+        lines.append(format_length(plan.length, phases))
     hint = sequential_blocks_hint(sum(p.block is not None and p.num_steps > 0 for p in phases), device_type)
     if hint is not None:
         lines.append(hint)
     return "\n".join(lines)
+
+
+def format_length(length: TrainingLength, phases: Sequence[Phase]) -> str:
+    """One line: the run's steps and where they came from (given, the capture, a time budget)."""
+    blocks = [p for p in phases if p.block is not None and p.num_steps > 0]
+    steps = phases[-1].end_step if phases else 0
+    parts = [f"global {length.global_steps} steps"] if any(p.block is None for p in phases) else []
+    if blocks:
+        parts.append(f"{len(blocks)} block{'s' if len(blocks) != 1 else ''} x {length.block_steps} steps")
+    shape = " + ".join(parts) + f" = {steps} steps"
+    if length.source == "given":
+        return f"training length: {shape} (as given)"
+    if length.source == "capture":
+        return f"training length: {shape}, planned from the capture's pixels (--pipeline.rays-per-pixel, --pipeline.block-rays-per-pixel)"
+    budget = format_duration(length.budget_s or 0.0)
+    if not length.measured:
+        return f"training length: {shape} for now; planned for a budget of {budget} once the pace of the first steps is measured"
+    pending = "; the blocks' steps are planned again from the time left when the global phase ends" if not length.blocks_measured else ""
+    return f"training length: {shape}, planned for a budget of {budget} at {length.pace_steps_per_s:.2f} steps/s{pending}"
 
 
 def sequential_blocks_hint(num_blocks_trained: int, device_type: str) -> Optional[str]:

@@ -9,6 +9,8 @@ from typing import Dict, List, Optional
 
 import pytest
 
+from scalar_nerfstudio.blocks.length import LengthSettings, TrainingLength
+from scalar_nerfstudio.engine.contract import Phase
 from scalar_nerfstudio.engine.threads import (
     CpuSample,
     ThreadGovernor,
@@ -283,9 +285,18 @@ class _OnePhasePipeline:
 
     plan = None
     total_steps = 100
+    phases = [Phase(None, 0, 100)]
+    length = TrainingLength(100, 0, "given")
+    num_blocks_following = 0
 
-    def phase_at(self, step: int) -> object:
-        return type("Phase", (), {"start_step": 0, "num_steps": 100, "end_step": 100})()
+    def phase_at(self, step: int) -> Phase:
+        return self.phases[0]
+
+    def set_length(self, length: TrainingLength) -> None:
+        self.length = length
+
+    def length_settings(self) -> LengthSettings:
+        return LengthSettings(global_steps=100, block_steps=0)
 
     def param_group_phases(self) -> dict:
         return {}

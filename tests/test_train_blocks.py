@@ -64,6 +64,7 @@ def fake_global_run(scene: Path, tmp_path: Path) -> Path:
     config = copy.deepcopy(scalar_nerf.config)
     config.data = config.pipeline.datamanager.data = scene
     config.pipeline.num_blocks = 2
+    config.pipeline.global_steps, config.pipeline.block_steps = 2000, 1000  # as a run without a recorded length says them
     (run / "config.yml").write_text(yaml.dump(config))
     names = [f"images/frame_{i:05d}.png" for i in range(12)]
     centres = np.stack([np.linspace(-1, 1, 12), np.zeros(12), np.zeros(12)], axis=1)

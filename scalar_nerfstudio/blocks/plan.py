@@ -23,6 +23,7 @@ import numpy as np
 
 from scalar_nerfstudio.atomic_io import atomic_write_text
 from scalar_nerfstudio.blocks.capacity import BlockCapacity, LayoutScale, auto_num_blocks, block_capacity, layout_scale
+from scalar_nerfstudio.blocks.length import LengthError, TrainingLength, length_from_json, length_to_json
 from scalar_nerfstudio.blocks.split import BlockSplit, BlockSplitError, load_blocks_json, split_cameras, split_to_json
 
 __all__ = ["BlockPlan", "PlanSettings", "load_plan", "plan_blocks", "save_plan"]
@@ -64,6 +65,8 @@ class BlockPlan:
         auto_num_blocks: the automatic K, when K was not given (None: given, or the split was).
         held_blocks: blocks the model allocates (none when the automatic K is 1).
         capacities: table size and finest resolution of each held block.
+        length: how long the run trains (blocks/length.py); None in a run from before lengths were planned
+            (its config.yml gives the steps).
     """
 
     split: BlockSplit
@@ -72,6 +75,7 @@ class BlockPlan:
     auto_num_blocks: Optional[int]
     held_blocks: Tuple[int, ...]
     capacities: Dict[int, BlockCapacity]
+    length: Optional[TrainingLength] = None
 
     @property
     def single_model(self) -> bool:
@@ -152,6 +156,8 @@ def save_plan(plan: BlockPlan, path: Path) -> None:
         "capacities": {str(k): asdict(c) for k, c in sorted(plan.capacities.items())},
         "layout": asdict(plan.layout),
     }
+    if plan.length is not None:
+        content["plan"]["length"] = length_to_json(plan.length)
     atomic_write_text(Path(path), json.dumps(content, indent=2) + "\n")
 
 
@@ -175,8 +181,10 @@ def load_plan(path: Path) -> BlockPlan:
         layout = LayoutScale(**saved["layout"])
         auto = saved["auto_num_blocks"]
         auto = None if auto is None else int(auto)
-    except (KeyError, TypeError, ValueError) as error:
+        length = None if saved.get("length") is None else length_from_json(saved["length"])
+    except (KeyError, TypeError, ValueError, LengthError) as error:
         raise BlockSplitError(f"malformed plan in {path}: {error!r}") from None
     if any(not 0 <= k < split.num_blocks for k in held) or set(capacities) != set(held):
         raise BlockSplitError(f"malformed plan in {path}: held blocks {list(held)} and capacities {sorted(capacities)} disagree with {split.num_blocks} blocks")
-    return BlockPlan(split=split, image_names=tuple(names), layout=layout, auto_num_blocks=auto, held_blocks=held, capacities=capacities)
+    return BlockPlan(split=split, image_names=tuple(names), layout=layout, auto_num_blocks=auto, held_blocks=held,
+                     capacities=capacities, length=length)

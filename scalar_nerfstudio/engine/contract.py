@@ -8,7 +8,7 @@ the trainer asks for it once (``isinstance``) instead of guessing attributes.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Dict, Optional, Protocol, Tuple, runtime_checkable
+from typing import Any, Dict, List, Optional, Protocol, Tuple, runtime_checkable
 
 
 @dataclass(frozen=True)
@@ -36,6 +36,22 @@ class PhasedPipeline(Protocol):
 
     plan: Any
     """The run's block plan (``blocks/plan.py``: ``BlockPlan``), saved into the run folder."""
+    phases: List[Phase]
+    """The training phases, in order."""
+
+    @property
+    def length(self) -> Any:
+        """How long the run trains (``blocks/length.py``: ``TrainingLength``)."""
+
+    def set_length(self, length: Any) -> None:
+        """Train for ``length`` (a time budget's measured plan) from now on: the phases follow it."""
+
+    def length_settings(self) -> Any:
+        """The options the run's length is planned from (``blocks/length.py``: ``LengthSettings``)."""
+
+    @property
+    def num_blocks_following(self) -> int:
+        """Blocks that train after the global model, here or in scalar-nerf-block runs."""
 
     @property
     def total_steps(self) -> int:

@@ -4,28 +4,30 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Literal, Optional, Type
+from typing import Any, Callable, Dict, List, Literal, Optional, Set, Type
 
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 from nerfstudio.engine.optimizers import Optimizers
 from nerfstudio.engine.trainer import Trainer, TrainerConfig
 from nerfstudio.utils import writer
 from nerfstudio.utils.rich_utils import CONSOLE
+from torch.optim import lr_scheduler
 
 from scalar_nerfstudio.atomic_io import atomic_torch_save
+from scalar_nerfstudio.blocks.length import TrainingLength, blocks_from_remaining_time, format_duration, length_from_budget
 from scalar_nerfstudio.blocks.plan import save_plan
-from scalar_nerfstudio.blocks.split import BlockSplitError, load_blocks_json
 from scalar_nerfstudio.config_checks import OptionError, check_block_counts, check_block_plan, check_options, check_output_dir
 from scalar_nerfstudio.data.validation import SceneError, scan_scene
 from scalar_nerfstudio.engine.contract import PhasedPipeline
 from scalar_nerfstudio.engine.device import limit_onednn_kernel_cache, resolve_machine
 from scalar_nerfstudio.engine.preview import write_preview
 from scalar_nerfstudio.engine.report import format_report, scene_model_report, write_report
-from scalar_nerfstudio.engine.schedulers import WarmupExponentialDecaySchedulerConfig
+from scalar_nerfstudio.engine.pace import BLOCK_CALIBRATION_STEPS, REPLAN_AT, TrainingClock, calibration_start, eta_line, pace_is_due
+from scalar_nerfstudio.engine.schedulers import WarmupExponentialDecaySchedulerConfig, retarget, warmup_steps_of
 from scalar_nerfstudio.engine.threads import ThreadGovernor
+from scalar_nerfstudio.pipeline_text import format_length
 from scalar_nerfstudio.runs import (
     RunError,
-    RunSchemaError,
     blocks_json_path,
     checkpoint_name,
     latest_checkpoint_step,
@@ -144,12 +146,20 @@ class ScalarTrainer(Trainer):
         limit_onednn_kernel_cache()  # before the first CPU kernel: memory must not grow with the steps
         super().__init__(config, local_rank, world_size)
         self.thread_governor = ThreadGovernor(enabled=config.adapt_threads and config.machine.device_type == "cpu")
+        self.training_clock = TrainingClock()
+        """Training wall-clock and pace: the ETA lines and a time budget's plan (a benchmark pauses it while it evaluates)."""
+        self._schedules: Dict[str, WarmupExponentialDecaySchedulerConfig] = {}
+        self._total_from_plan = config.max_num_iterations <= 0
+        self._pace_reported = False
+        self._replans_done: Set[float] = set()
+        self._block_pace_planned = False
 
     def setup(self, test_mode: Literal["test", "val", "inference"] = "val") -> None:
+        self._total_from_plan = self.config.max_num_iterations <= 0
         super().setup(test_mode=test_mode)
         pipeline = self.phased_pipeline
         pipeline.attach_run_dir(self.base_dir)
-        if self.config.max_num_iterations <= 0:
+        if self._total_from_plan:
             self.config.max_num_iterations = pipeline.total_steps
         # nerfstudio's step log (ETA, % done) was set up in Trainer.__init__, before the phases were
         # known, with max_num_iterations 0 (= every phase): give it the real total.
@@ -167,11 +177,12 @@ class ScalarTrainer(Trainer):
             raise TypeError(f"{type(self).__name__} trains a pipeline that trains in phases (ScalarPipeline), not {type(pipeline).__name__}")
         return pipeline
 
-    def _record_plan(self, pipeline: PhasedPipeline) -> None:
-        """Save the run's block plan as blocks.json and name it in config.yml (once), so that every
-        later load of the run builds the model that was trained (K, split, block capacities)."""
+    def _record_plan(self, pipeline: PhasedPipeline, again: bool = False) -> None:
+        """Save the run's block plan as blocks.json and name it in config.yml (once; ``again``: a time budget's
+        plan was measured), so that every later load of the run builds the model that was trained (K, split,
+        block capacities) and trains the steps it planned."""
         path = blocks_json_path(self.base_dir)
-        if self.config.pipeline.run_plan is not None and Path(self.config.pipeline.run_plan).resolve() == path.resolve():
+        if not again and self.config.pipeline.run_plan is not None and Path(self.config.pipeline.run_plan).resolve() == path.resolve():
             return
         save_plan(pipeline.plan, path)
         self.config.pipeline.run_plan = path.resolve()
@@ -189,28 +200,136 @@ class ScalarTrainer(Trainer):
         """
         pipeline = self.phased_pipeline
         param_groups = pipeline.get_param_groups()
-        phases = pipeline.param_group_phases()
         config: Dict[str, Any] = {}
+        self._schedules = {}
         for group in param_groups:
-            template, phase = phases.get(group, (group, None))
-            template = self._optimizer_template(group, template)
-            settings = dict(self.config.optimizers[template])
-            scheduler = settings.get("scheduler")
-            if isinstance(scheduler, WarmupExponentialDecaySchedulerConfig):
-                start, length = (phase.start_step, phase.num_steps) if phase is not None else (0, self.config.max_num_iterations)
-                is_global = phase is not None and phase.block is None
-                held = is_global and pipeline.holds_global_learning_rate
-                restart = pipeline.global_restart_fraction if is_global else 0.0
-                restart_factor = 1.0
-                if restart > 0:  # one model: restart at the rate a block's group starts with
-                    restart_template = self._optimizer_template(group, RESTART_TEMPLATES.get(template, template))
-                    base_lr = float(settings["optimizer"].lr)  # 0: a frozen group stays frozen
-                    restart_factor = float(self.config.optimizers[restart_template]["optimizer"].lr) / base_lr if base_lr > 0 else 1.0
-                settings["scheduler"] = replace(scheduler, start_step=start, max_steps=scheduler.max_steps or max(length, 1),
-                                                final_factor=1.0 if held else scheduler.final_factor,
-                                                restart_fraction=restart, restart_factor=restart_factor)
+            settings = dict(self.config.optimizers[self._group_template(group)])
+            schedule = self._schedule_of(group)
+            if schedule is not None:
+                settings["scheduler"] = self._schedules[group] = schedule
             config[group] = settings
         return Optimizers(config, param_groups)
+
+    def _group_template(self, group: str) -> str:
+        template, _ = self.phased_pipeline.param_group_phases().get(group, (group, None))
+        return self._optimizer_template(group, template)
+
+    def _schedule_of(self, group: str, warmup_steps: Optional[int] = None) -> Optional[WarmupExponentialDecaySchedulerConfig]:
+        """The schedule of ``group``'s learning rate over the phase it trains in (None: its template has
+        another kind of scheduler). ``warmup_steps``: keep this warm-up (a phase whose length changed)."""
+        pipeline = self.phased_pipeline
+        template, phase = pipeline.param_group_phases().get(group, (group, None))
+        template = self._optimizer_template(group, template)
+        settings = self.config.optimizers[template]
+        scheduler = settings.get("scheduler")
+        if not isinstance(scheduler, WarmupExponentialDecaySchedulerConfig):
+            return None
+        start, length = (phase.start_step, phase.num_steps) if phase is not None else (0, self._planned_total(pipeline))
+        is_global = phase is not None and phase.block is None
+        held = is_global and pipeline.holds_global_learning_rate
+        restart = pipeline.global_restart_fraction if is_global else 0.0
+        restart_factor = 1.0
+        if restart > 0:  # one model: restart at the rate a block's group starts with
+            restart_template = self._optimizer_template(group, RESTART_TEMPLATES.get(template, template))
+            base_lr = float(settings["optimizer"].lr)  # 0: a frozen group stays frozen
+            restart_factor = float(self.config.optimizers[restart_template]["optimizer"].lr) / base_lr if base_lr > 0 else 1.0
+        return replace(scheduler, start_step=start, max_steps=scheduler.max_steps or max(length, 1),
+                       final_factor=1.0 if held else scheduler.final_factor, restart_fraction=restart,
+                       restart_factor=restart_factor, warmup_steps=warmup_steps if warmup_steps is not None else scheduler.warmup_steps)
+
+    def _planned_total(self, pipeline: PhasedPipeline) -> int:
+        """Steps of the run: ``--max-num-iterations`` when given, else every phase's."""
+        return pipeline.total_steps if self._total_from_plan or self.config.max_num_iterations <= 0 else self.config.max_num_iterations
+
+    # ------------------------------------------------ the clock: ETA, and a time budget's plan (engine/pace.py)
+    def _follow_the_clock(self, step: int) -> None:
+        """After ``step``: once the pace is known (:func:`.pace.pace_is_due`) print the ETA; with a time budget,
+        plan the steps then and again at :data:`.pace.REPLAN_AT` of the budget while the global phase trains
+        (its steps get dearer as the model fills in), and the blocks' steps from the time left when it ends;
+        at each phase's start, the ETA."""
+        pipeline = self.phased_pipeline
+        clock = self.training_clock
+        clock.mark(step + 1)
+        length = pipeline.length
+        budget = length.budget_s if length.source == "budget" else None
+        phase = pipeline.phase_at(step)
+        in_global = phase.block is None and step + 1 < phase.end_step
+        if not self._pace_reported and pace_is_due(clock.steps_seen, clock.elapsed_s(), budget):
+            self._pace_reported = True
+            first = step + 1 - clock.steps_seen + calibration_start(clock.steps_seen)
+            pace = clock.pace(since_steps=first)
+            if budget is not None and not length.measured and pace is not None:
+                self._replan_from_pace(step, budget, pace)
+            CONSOLE.print(f"step {step + 1}: {pace or 0.0:.2f} steps/s over steps {first}-{step + 1}; "
+                          f"{format_length(pipeline.length, pipeline.phases)}; {eta_line(self._total_steps - step - 1, pace)}")
+        elif budget is not None and length.measured and (in_global or phase.block is not None and phase.start_step == 0):
+            due = [share for share in REPLAN_AT if share not in self._replans_done and clock.elapsed_s() >= share * budget]
+            pace = clock.pace(last_steps=200)
+            if due and pace is not None:
+                self._replans_done.update(due)
+                self._replan_from_pace(step, budget, pace)
+                CONSOLE.print(f"step {step + 1}: {pace:.2f} steps/s over the last steps, {due[-1]:.0%} of the budget spent; "
+                              f"{format_length(pipeline.length, pipeline.phases)}; {eta_line(self._total_steps - step - 1, pace)}")
+        phase = pipeline.phase_at(step)
+        first_block = next((p for p in pipeline.phases if p.block is not None), None)
+        done_in_block = step + 1 - phase.start_step
+        if (budget is not None and phase == first_block and phase.start_step > 0 and not self._block_pace_planned
+                and done_in_block >= min(BLOCK_CALIBRATION_STEPS, max(phase.num_steps // 3, 1)) and phase.num_steps - done_in_block > 1):
+            self._block_pace_planned = True  # the blocks' steps again, at the first block's own pace
+            pace = clock.pace(since_steps=phase.start_step + min(10, done_in_block // 2)) or 0.0
+            remaining = budget - self._budget_spent_s(step + 1, pace)
+            self._replan(blocks_from_remaining_time(pipeline.length, pipeline.length_settings(), pipeline.num_blocks_following,
+                                                    remaining, pace, first_block_steps_done=done_in_block), started_through=step)
+            CONSOLE.print(f"step {step + 1}: {pace:.2f} steps/s in {phase.name}; {format_length(pipeline.length, pipeline.phases)}; "
+                          f"{eta_line(self._total_steps - step - 1, pace)}")
+        if budget is not None and phase.block is None and step + 1 == phase.end_step and not pipeline.length.blocks_measured:
+            pace = clock.pace(last_steps=200) or pipeline.length.pace_steps_per_s or 0.0
+            remaining = budget - self._budget_spent_s(step + 1, pace)
+            self._replan(blocks_from_remaining_time(pipeline.length, pipeline.length_settings(), pipeline.num_blocks_following,
+                                                    remaining, pace), started_through=step)
+            CONSOLE.print(f"step {step + 1}: the global phase took {format_duration(clock.elapsed_s())}; {format_duration(max(remaining, 0))} "
+                          f"of the budget left: {format_length(pipeline.length, pipeline.phases)}")
+        upcoming = pipeline.phase_at(step + 1)
+        if self._pace_reported and step + 1 == upcoming.start_step and step + 1 < self._total_steps:
+            CONSOLE.print(f"step {step + 1}: phase {upcoming.name} starts ({upcoming.num_steps} steps); the run has "
+                          f"{eta_line(self._total_steps - step - 1, clock.pace(last_steps=200))}")
+
+    def _replan_from_pace(self, step: int, budget: float, pace: float) -> None:
+        """Plan the steps so that those done after ``step`` plus those that fit the budget's time left at ``pace``
+        make the run (the phase that trains keeps at least the steps it has done)."""
+        pipeline = self.phased_pipeline
+        remaining = max(budget - self._budget_spent_s(step + 1, pace), 0.0)
+        effective = (step + 1 + remaining * pace) / budget  # steps per second of budget: those done and those that fit
+        length = length_from_budget(pipeline.length, pipeline.length_settings(), pipeline.num_blocks_following, effective,
+                                    steps_done=step + 1)
+        self._replan(length, started_through=step)
+
+    def _budget_spent_s(self, steps_done: int, pace: float) -> float:
+        """Training seconds of the budget spent after ``steps_done`` steps: this process's, plus, in a resumed
+        run, its earlier steps at ``pace``."""
+        earlier = steps_done - self.training_clock.steps_seen
+        return self.training_clock.elapsed_s() + (earlier / pace if pace > 0 and earlier > 0 else 0.0)
+
+    def _replan(self, length: TrainingLength, started_through: int) -> None:
+        """Train for ``length`` from now on: the phases, the learning-rate schedules (a phase that has started
+        keeps its warm-up), the run's total and its recorded plan follow it."""
+        pipeline = self.phased_pipeline
+        pipeline.set_length(length)
+        for group, scheduler in self.optimizers.schedulers.items():
+            old = self._schedules.get(group)
+            if old is None or not isinstance(scheduler, lr_scheduler.LambdaLR):
+                continue
+            started = old.start_step <= started_through
+            new = self._schedule_of(group, warmup_steps=warmup_steps_of(old) if started else None)
+            if new is not None and new != old:
+                retarget(scheduler, new)
+                self._schedules[group] = new
+        self._total_steps = self._planned_total(pipeline)
+        if self._total_from_plan:
+            self.config.max_num_iterations = self._total_steps
+        writer.GLOBAL_BUFFER["max_iter"] = self._total_steps
+        self._record_plan(pipeline, again=True)
+    # ------------------------------------------------------------------------------------------------
 
     def _optimizer_template(self, group: str, template: str) -> str:
         """``template``, checked to be in ``optimizers``."""
@@ -224,6 +343,9 @@ class ScalarTrainer(Trainer):
         (``adapt_threads``)."""
         self.thread_governor.update()
         result = super().train_iteration(step)
+        self._follow_the_clock(step)
+        if step + 1 >= self._total_steps:
+            self.stop_training = True  # a time budget's loop runs to its longest possible plan
         every = self.config.steps_per_preview
         if every > 0 and ((step + 1) % every == 0 or step + 1 == self._total_steps):
             path, psnr = write_preview(self.pipeline, self.base_dir, step, self.config.preview_max_size)
@@ -270,7 +392,9 @@ class ScalarTrainer(Trainer):
         self._total_steps = total
         self.step = max(self._start_step - 1, 0)
         self.release_finished_optimizer_state(self._start_step)  # a resumed run's finished phases
-        self.config.max_num_iterations = max(total - self._start_step, 0)
+        self.training_clock.start(self._start_step)
+        # A time budget waiting for its pace may train up to its longest plan; train_iteration stops it at the planned end.
+        self.config.max_num_iterations = max(self._loop_bound(total) - self._start_step, 0)
         try:
             super().train()
         finally:
@@ -286,8 +410,21 @@ class ScalarTrainer(Trainer):
         CONSOLE.print(format_report(report))
         CONSOLE.print(f"model report saved to {path}")
 
+    def _loop_bound(self, total: int) -> int:
+        """The steps nerfstudio's loop may run: ``total``, or, while a time budget's plan is not measured, its
+        longest plan (every phase at the most steps a phase may have)."""
+        length = self.phased_pipeline.length
+        if length.final or not self._total_from_plan:
+            return total
+        most = self.phased_pipeline.length_settings().max_steps
+        return max(total, most * (1 + self.phased_pipeline.num_blocks_following))
+
     def save_checkpoint(self, step: int) -> None:
-        """Save model, optimizers, schedulers and scaler atomically; keep only the latest if configured."""
+        """Save model, optimizers, schedulers and scaler atomically; keep only the latest if configured.
+        A run stopped at its planned end (nerfstudio then names the step after its last) is saved as its last step."""
+        total = getattr(self, "_total_steps", None)
+        if total is not None and self.stop_training and step >= total > 0:
+            step = total - 1
         self.checkpoint_dir.mkdir(parents=True, exist_ok=True)
         ckpt_path = self.checkpoint_dir / checkpoint_name(step)
         pipeline = self.pipeline
@@ -303,93 +440,3 @@ class ScalarTrainer(Trainer):
             for old in self.checkpoint_dir.glob("step-*.ckpt"):
                 if old != ckpt_path:
                     old.unlink()
-
-
-@dataclass
-class ScalarBlockTrainerConfig(ScalarTrainerConfig):
-    """``scalar-nerf-block``: train one block of a trained ``scalar-nerf`` run, in a folder of its own.
-
-    The scene, the split (the global run's blocks.json) and the model hyper-parameters come from the
-    global run; the global model's weights are read from its newest checkpoint. Nothing is written
-    into the global run, so several blocks can train at once (other processes or machines).
-    """
-
-    block: int = 0
-    """Index of the block (as listed in the global run's blocks.json) to train."""
-    global_run: Optional[Path] = None
-    """The trained scalar-nerf run to start from: its folder (or its config.yml)."""
-
-    def set_timestamp(self) -> None:
-        """Called by ``ns-train`` before anything is written: adopt the global run's scene and split.
-
-        The run folder is named ``TIMESTAMP-blockK``, so blocks started in the same second (several
-        processes at once) never share a folder.
-        """
-        try:
-            self.adopt_global_run()
-        except RunError as error:
-            raise SystemExit(f"scalar-nerf-block: {error}") from None
-        fresh = self.timestamp == "{timestamp}" and self._resumed_run_dir() is None
-        super().set_timestamp()
-        if fresh:
-            self.timestamp = f"{self.timestamp}-block{self.block}"
-
-    def adopt_global_run(self) -> None:
-        """Take the scene, split, model settings and global checkpoint from ``global_run`` (``ns-train``
-        does this first; ``scalar-nerf-train-blocks`` to check a global run without training).
-
-        Raises:
-            RunError: ``global_run`` is not a scalar-nerf run whose global phase is finished (one line).
-        """
-        if self.global_run is None:
-            raise RunError("--global-run is required (the folder of a trained `ns-train scalar-nerf` run).")
-        config_path = run_config_path(self.global_run)
-        try:
-            global_config = load_run_config(config_path)
-        except RunSchemaError:
-            raise
-        except RunError:
-            raise RunError(f"the global run {self.global_run}: no config.yml there (not a scalar-nerf run folder).") from None
-        run_dir = config_path.parent
-        global_pipeline = getattr(global_config, "pipeline", None)
-        if not hasattr(global_pipeline, "global_steps"):
-            raise RunError(f"{config_path} is not a scalar-nerf run.")
-        blocks_json = blocks_json_path(run_dir)
-        if not blocks_json.is_file():
-            raise RunError(f"{blocks_json} is missing; was {run_dir} trained with scalar-nerf?")
-        checkpoint_dir = run_dir / global_config.relative_model_dir
-        step = latest_checkpoint_step(checkpoint_dir)
-        if step is None or step + 1 < global_pipeline.global_steps:
-            done = 0 if step is None else step + 1
-            raise RunError(
-                f"the global phase of {run_dir} is not finished "
-                f"({done} of {global_pipeline.global_steps} steps checkpointed); train it first."
-            )
-        try:
-            num_blocks = load_blocks_json(blocks_json)[0].num_blocks
-        except BlockSplitError as error:
-            raise RunError(str(error)) from None
-        if not 0 <= self.block < num_blocks:
-            raise RunError(f"--block {self.block} does not exist; {blocks_json} has blocks 0..{num_blocks - 1}.")
-        pipeline = self.pipeline
-        pipeline.datamanager.data = global_pipeline.datamanager.data
-        pipeline.datamanager.dataparser = global_pipeline.datamanager.dataparser
-        pipeline.model = global_pipeline.model
-        pipeline.num_blocks, pipeline.aabb_scale = global_pipeline.num_blocks, global_pipeline.aabb_scale
-        pipeline.split_seed = global_pipeline.split_seed
-        pipeline.min_overlap_images = global_pipeline.min_overlap_images
-        for name in ("block_log2_hashmap_size", "block_log2_hashmap_bounds", "block_max_resolution", "block_max_resolution_bounds"):
-            setattr(pipeline, name, getattr(global_pipeline, name))
-        # Block settings left at their defaults follow the global run (an explicit value wins).
-        defaults = type(pipeline)()
-        for name in ("block_steps", "decoder_mode"):
-            if getattr(pipeline, name) == getattr(defaults, name):
-                setattr(pipeline, name, getattr(global_pipeline, name))
-        if pipeline.datamanager.train_num_rays_per_batch == defaults.datamanager.train_num_rays_per_batch:
-            pipeline.datamanager.train_num_rays_per_batch = global_pipeline.datamanager.train_num_rays_per_batch
-        pipeline.only_block = self.block
-        pipeline.blocks_json = blocks_json.resolve()
-        pipeline.global_checkpoint = (checkpoint_dir / checkpoint_name(step)).resolve()
-        self.data = global_pipeline.datamanager.data
-        if self.experiment_name is None:
-            self.experiment_name = global_config.experiment_name

@@ -1,0 +1,104 @@
+"""``--pipeline.time-budget``: a run plans its steps to fit the budget at the pace it measures, records the
+plan, and ``scalar-nerf-block`` runs train the steps it planned. Time is simulated (each step costs a fixed
+number of seconds on the trainer's clock), so nothing here depends on the machine's speed."""
+
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+from typing import Dict, List
+
+import pytest
+
+from scalar_nerfstudio.blocks.plan import load_plan
+from scalar_nerfstudio.engine.pace import TrainingClock
+from scalar_nerfstudio.runs import latest_checkpoint_step, load_run_config
+from conftest import tiny_trainer
+
+#: Simulated seconds of one step: a block's cost more than the global model's (as measured on the towns).
+GLOBAL_STEP_S, BLOCK_STEP_S = 0.2, 0.3
+
+
+@pytest.mark.slow  # trains about 250 tiny steps
+def test_a_time_budget_plans_the_steps_to_fit_it_and_records_them(scene: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                                    capsys: pytest.CaptureFixture) -> None:
+    trainer = tiny_trainer(scene, tmp_path, time_budget="60s", global_steps=None, block_steps=None)
+    pipeline = trainer.pipeline
+    assert not pipeline.length.measured and pipeline.length.source == "budget"
+    simulated = {"t": 0.0}
+    trainer.training_clock = TrainingClock(now=lambda: simulated["t"])
+    per_phase: Dict[str, int] = {}
+    train_loss = pipeline.get_train_loss_dict
+
+    def costed(step: int):
+        phase = pipeline.phase_at(step)
+        simulated["t"] += GLOBAL_STEP_S if phase.block is None else BLOCK_STEP_S
+        per_phase[phase.name] = per_phase.get(phase.name, 0) + 1
+        return train_loss(step)
+
+    monkeypatch.setattr(pipeline, "get_train_loss_dict", costed)
+    trainer.train()
+    log = " ".join(capsys.readouterr().out.split())
+
+    length = pipeline.length
+    assert length.source == "budget" and length.measured and length.blocks_measured
+    # The run ends on its budget (one step's cost of slack per re-plan) ...
+    assert simulated["t"] == pytest.approx(60.0, abs=1.5)
+    # ... it trained what it planned, the blocks as many steps each ...
+    assert per_phase == {"global": length.global_steps, "block 0": length.block_steps, "block 1": length.block_steps}
+    assert latest_checkpoint_step(trainer.checkpoint_dir) == length.total_steps(2) - 1
+    # ... the global phase took its share of the capture's plan (2 : 1 per block, 2000 : 1000 here) ...
+    assert length.global_steps * GLOBAL_STEP_S == pytest.approx(60.0 * 2 / 4, rel=0.1)
+    # ... and the plan and its ETA were printed before the long work, and at every phase.
+    assert "training length: global 2000 steps + 2 blocks x 1000 steps = 4000 steps for now" in log
+    assert "planned for a budget of 1 min 00 s at" in log and "left (ends about" in log
+    assert f"phase block 1 starts ({length.block_steps} steps)" in log
+
+    run = trainer.base_dir
+    assert load_plan(run / "blocks.json").length == length  # a resumed run, ns-eval, the viewer read it back
+    assert load_run_config(run).max_num_iterations == length.total_steps(2)
+
+    from scalar_nerfstudio.method_configs import scalar_nerf_block
+
+    block_config = copy.deepcopy(scalar_nerf_block.config)
+    block_config.global_run, block_config.block = run, 1
+    block_config.adopt_global_run()
+    assert block_config.pipeline.block_steps == length.block_steps  # a block trained elsewhere trains the planned steps
+
+
+@pytest.mark.slow  # trains about 60 tiny steps, twice
+def test_a_resumed_budget_run_keeps_its_plan(scene: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Killed after its plan was measured, a run resumed from its checkpoint trains to the same planned end."""
+    def one_model(**options) -> object:
+        return tiny_trainer(scene, tmp_path, num_blocks=1, train_blocks=False, time_budget="20s", global_steps=None,
+                            block_steps=None, **options)
+
+    trainer = one_model()
+    simulated = {"t": 0.0}
+    trainer.training_clock = TrainingClock(now=lambda: simulated["t"])
+    train_loss = trainer.pipeline.get_train_loss_dict
+    steps: List[int] = []
+
+    def costed(step: int):
+        simulated["t"] += 0.25
+        steps.append(step)
+        if len(steps) == 50:
+            trainer.stop_training = True  # as if killed after the checkpoint below
+        return train_loss(step)
+
+    monkeypatch.setattr(trainer.pipeline, "get_train_loss_dict", costed)
+    trainer.config.steps_per_save = 25
+    trainer.train()
+    planned = load_plan(trainer.base_dir / "blocks.json").length
+    assert planned.measured and planned.global_steps == pytest.approx(80, abs=2)  # 20 s at 4 steps/s
+    assert latest_checkpoint_step(trainer.checkpoint_dir) is not None
+
+    def resume(config) -> None:
+        config.load_dir = trainer.checkpoint_dir
+        config.timestamp = trainer.base_dir.name
+        config.pipeline.run_plan = trainer.base_dir / "blocks.json"
+
+    resumed = one_model(configure=resume)
+    assert resumed.pipeline.length == planned
+    resumed.train()
+    assert latest_checkpoint_step(resumed.checkpoint_dir) == planned.global_steps - 1
