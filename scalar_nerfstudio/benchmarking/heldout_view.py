@@ -71,7 +71,7 @@ def render_view(run_dir: Path, view: int) -> Dict[str, Any]:
             "fusion": str(getattr(model, "fusion_mode", "global")), "views": views}
 
 
-def _figure_png(images: List[Any], captions: List[str]) -> bytes:
+def figure_png(images: List[Any], captions: List[str]) -> bytes:
     """The panels side by side, each with its caption above: PNG bytes."""
     import matplotlib
 
@@ -122,5 +122,5 @@ def write_heldout_view(config: BenchmarkConfig, results: Dict[str, Dict[str, Any
         images += [rendered["rgb"], rendered["block_colour"]]
     panels.insert(0, {"caption": f"ground truth, held-out view {config.heldout_view}", "variant": None, "psnr": None})
     images.insert(0, truth)
-    atomic_write_bytes(config.output_dir / FILE_NAME, _figure_png(images, [p["caption"] for p in panels]))
+    atomic_write_bytes(config.output_dir / FILE_NAME, figure_png(images, [p["caption"] for p in panels]))
     return {"view": config.heldout_view, "file": FILE_NAME, "panels": panels}

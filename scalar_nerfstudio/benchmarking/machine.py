@@ -80,3 +80,27 @@ def hash_grid_speed(
     finally:
         torch.set_num_threads(previous)
     return num_points / seconds / 1e6
+
+
+def describe_cpu() -> str:
+    """E.g. ``"AMD EPYC, 2 cores, AVX2 and FMA (no AVX-512), no GPU"``: which of the project's two kinds
+    of CPU (with AVX512-BF16/AMX, or AVX2 and FMA only) a figure came from."""
+    import os
+
+    model, flags = "unknown CPU", set()
+    try:
+        for line in open("/proc/cpuinfo", encoding="utf-8"):
+            if line.startswith("model name") and model == "unknown CPU":
+                model = line.split(":", 1)[1].strip()
+            elif line.startswith("flags") and not flags:
+                flags = set(line.split(":", 1)[1].split())
+    except OSError:
+        pass
+    if "avx512_bf16" in flags or "amx_bf16" in flags:
+        isa = "AVX512-BF16" + ("/AMX" if "amx_bf16" in flags else "")
+    elif "avx2" in flags:
+        isa = "AVX2 and FMA (no AVX-512)" if "fma" in flags else "AVX2"
+    else:
+        isa = "no AVX2"
+    gpu = ", CUDA" if torch.cuda.is_available() else ", no GPU"
+    return f"{model}, {os.cpu_count()} cores, {isa}{gpu}"

@@ -142,12 +142,43 @@ def _trained_parameters(model) -> Tuple[int, float]:
     return count, count * 4 / MIB
 
 
+def _resume_into(config, run_dir: Path) -> None:
+    """Make ``config`` resume the run in ``run_dir`` from its newest checkpoint (a variant stopped midway)."""
+    config.load_dir = run_dir / config.relative_model_dir
+    config.timestamp = run_dir.name
+
+
+def _partial_path(spec: Dict[str, Any]) -> Path:
+    """Where a run with ``eval_at_s`` keeps its curve so far and its run folder (``--resume`` continues it)."""
+    return Path(spec["result"]).with_suffix(".partial.json")
+
+
 def run(spec: Dict[str, Any]) -> Dict[str, Any]:
-    """Train and evaluate one variant as ``spec`` says; returns the result written to ``spec["result"]``."""
+    """Train and evaluate one variant as ``spec`` says; returns the result written to ``spec["result"]``.
+
+    With ``eval_at_s`` (training seconds on the trainer's clock, a time budget's run), the run is evaluated
+    at those times, saves a checkpoint every ``save_every_steps`` steps and keeps its curve in a partial
+    file; with ``resume`` set, a run stopped midway continues from its newest checkpoint and curve."""
     config = trainer_config(spec)
+    eval_at_s = sorted(float(t) for t in spec.get("eval_at_s") or [])
+    partial_path = _partial_path(spec)
+    partial = json.loads(partial_path.read_text()) if spec.get("resume") and partial_path.is_file() else None
+    if eval_at_s:
+        config.steps_per_save = int(spec.get("save_every_steps") or 10**9)
+    if partial is not None:
+        from scalar_nerfstudio.runs import latest_checkpoint_step
+
+        run_dir = Path(partial["run_dir"])
+        if latest_checkpoint_step(run_dir / config.relative_model_dir) is not None:
+            _resume_into(config, run_dir)
+            print(f"resuming {run_dir} from its newest checkpoint", flush=True)
+        else:
+            partial = None
     config.set_timestamp()
     config.save_config()
     trainer = setup_trainer(config)
+    if eval_at_s:
+        return _run_on_the_clock(spec, trainer, eval_at_s, partial)
     fusions = spec.get("fusions") or []
     split = getattr(trainer.pipeline.model, "split", None)
     if split is not None:  # a fusion naming a block this run does not have fails now, not after its training
@@ -221,6 +252,85 @@ def run(spec: Dict[str, Any]) -> Dict[str, Any]:
         result["num_blocks"] = len(started)
         result["block_tables"] = {str(k): int(model.blocks[str(k)].field.config.log2_hashmap_size) for k in started}
         result["block_train_s"] = block_train_s
+    atomic_write_text(Path(spec["result"]), json.dumps(result, indent=2))
+    return result
+
+
+def _run_on_the_clock(spec: Dict[str, Any], trainer, eval_at_s: List[float], partial) -> Dict[str, Any]:
+    """:func:`run` for a time budget's run: evaluated at ``eval_at_s`` training seconds and at its end."""
+    pipeline = trainer.pipeline
+    clock = trainer.training_clock
+    start_step = int(getattr(trainer, "_start_step", 0))
+    curve: List[Dict[str, float]] = [p for p in (partial or {}).get("curve", []) if p["step"] <= start_step]
+    phase_end_s: Dict[str, float] = {k: v for k, v in (partial or {}).get("phase_end_s", {}).items()}
+    """Training seconds at the end of each finished phase (the blocks' times give the wall-clock of K workers)."""
+    pending = [t for t in eval_at_s if not any(p.get("at_s") == t for p in curve)]
+    partial_path = _partial_path(spec)
+    progress_s = float(spec.get("progress_s") or eval_at_s[-1])
+
+    def keep() -> None:
+        content = {"run_dir": str(trainer.base_dir), "curve": curve, "phase_end_s": phase_end_s}
+        atomic_write_text(partial_path, json.dumps(content, indent=2))
+
+    keep()
+
+    def after_step(step: int, result, step_clock: StepClock) -> None:
+        print(f"PROGRESS {min(clock.elapsed_s(), progress_s):.0f} {progress_s:.0f}", flush=True)
+        phase = pipeline.phase_at(step)
+        if step + 1 == phase.end_step:
+            phase_end_s[phase.name] = clock.elapsed_s()
+        due = [t for t in pending if clock.elapsed_s() >= t]
+        if due and step + 1 < trainer._total_steps:
+            with clock.paused():
+                curve.append({"step": step + 1, "train_s": clock.elapsed_s(), "at_s": due[-1], **_evaluate(pipeline)})
+            for t in due:
+                pending.remove(t)
+            keep()
+
+    time_train_iterations(trainer, after_step)
+    trainer.train()
+    with clock.paused():
+        curve.append({"step": trainer._total_steps, "train_s": clock.elapsed_s(), "at_s": eval_at_s[-1], **_evaluate(pipeline)})
+    keep()
+    result = _finish(spec, trainer, curve, clock.elapsed_s(), trainer._total_steps - start_step)
+    result["phase_s"] = _phase_seconds(pipeline.phases, phase_end_s)
+    atomic_write_text(Path(spec["result"]), json.dumps(result, indent=2))
+    return result
+
+
+def _phase_seconds(phases, phase_end_s: Dict[str, float]) -> Dict[str, float]:
+    """Training seconds of each phase, from the training time at the end of each (in order)."""
+    seconds: Dict[str, float] = {}
+    previous = 0.0
+    for phase in phases:
+        if phase.name in phase_end_s:
+            seconds[phase.name] = phase_end_s[phase.name] - previous
+            previous = phase_end_s[phase.name]
+    return seconds
+
+
+def _finish(spec: Dict[str, Any], trainer, curve: List[Dict[str, float]], train_s: float, steps_here: int) -> Dict[str, Any]:
+    """The result of a time budget's run: its curve, the other fusions at its end, its blocks' times."""
+    pipeline = trainer.pipeline
+    model = pipeline.model
+    finals: Dict[str, Dict[str, float]] = {}
+    for index, mode in enumerate(spec.get("fusions") or []):
+        if index == 0:
+            finals[mode] = {k: v for k, v in curve[-1].items() if k not in ("step", "train_s", "at_s")}
+            continue
+        model.set_fusion(mode)
+        finals[mode] = _evaluate(pipeline)
+    num_parameters, parameter_mib = _trained_parameters(model)
+    length = pipeline.length
+    phases = {phase.name: phase.num_steps for phase in pipeline.phases}
+    result = {
+        "name": spec["name"], "method": spec["method"], "steps": curve[-1]["step"], "train_s": train_s,
+        "train_rays_per_s": steps_here * pipeline.datamanager.get_train_rays_per_batch() / max(train_s, 1e-9),
+        "curve": curve, "final": curve[-1], "fusions": finals, "parameters": num_parameters, "parameter_mib": parameter_mib,
+        "peak_rss_mib": peak_memory_mib("cpu")["peak_rss_mib"], "threads": torch.get_num_threads(), "run_dir": str(trainer.base_dir),
+        "length": {"global_steps": length.global_steps, "block_steps": length.block_steps, "budget_s": length.budget_s, "phases": phases},
+        "num_blocks": len(model.started_block_ids()) if hasattr(model, "started_block_ids") else 0,
+    }
     atomic_write_text(Path(spec["result"]), json.dumps(result, indent=2))
     return result
 

@@ -173,6 +173,14 @@ class BenchmarkConfig:
     """Show the variants' training output."""
     from_results: bool = False
     """Train nothing: rewrite results.md and the plots from output_dir/results.json."""
+    budget_eval_shares: Tuple[float, ...] = (0.25, 0.5, 0.75)
+    """With --budgets: shares of its training time at which a run is evaluated before its end (each renders every
+    held-out view; none: at its end only)."""
+    budgets: Optional[Tuple[str, ...]] = None
+    """Speed against error to the plateau instead of equal steps: wall-clock budgets (like 5m 15m 1h 4h); every
+    variant of ngp-t, ngp-t2, auto and auto-parallel in --variants trains once per budget as --pipeline.time-budget
+    plans it, evaluated at 25, 50, 75 and 100 % of its time (benchmarking/curves.py). --resume continues an
+    interrupted run from its checkpoint."""
 
     def __post_init__(self) -> None:
         # former variant names (ngp19, ngp21) become the new ones, so the run records only the new names
@@ -208,6 +216,18 @@ def check_options(config: BenchmarkConfig) -> None:
         raise SystemExit(f"scalar-nerf-benchmark: --wall-clock-tries {config.wall_clock_tries}: at least 1 run is needed")
     if config.heldout_view < 0:
         raise SystemExit(f"scalar-nerf-benchmark: --heldout-view {config.heldout_view}: a view index is 0 or more")
+    if config.budgets is not None:
+        from scalar_nerfstudio.blocks.length import LengthError, parse_duration
+
+        if not config.budgets:
+            raise SystemExit("scalar-nerf-benchmark: --budgets needs at least one budget (like 15m)")
+        if not all(0.0 < share < 1.0 for share in config.budget_eval_shares):
+            raise SystemExit(f"scalar-nerf-benchmark: --budget-eval-shares {config.budget_eval_shares}: each share lies between 0 and 1")
+        for budget in config.budgets:
+            try:
+                parse_duration(budget)
+            except LengthError as error:
+                raise SystemExit(f"scalar-nerf-benchmark: --budgets {budget}: {error}") from None
     if config.decoder_width is not None and config.decoder_width < 1:
         raise SystemExit(f"scalar-nerf-benchmark: --decoder-width {config.decoder_width}: a decoder layer needs at least 1 unit")
     unknown = [v for v in config.variants if canonical_variant(v) not in VARIANTS]

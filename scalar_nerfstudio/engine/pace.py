@@ -38,27 +38,36 @@ class TrainingClock:
     def __init__(self, *, now: Callable[[], float] = time.perf_counter, history: int = 512) -> None:
         self._now = now
         self._start: Optional[float] = None
+        self._before_s: Optional[float] = None
         self._paused_s = 0.0
         self._pause_started: Optional[float] = None
         self._marks: Deque[Tuple[int, float]] = deque(maxlen=history)
         """(steps done, training seconds) after each recent step."""
 
-    def start(self, steps_done: int = 0) -> None:
-        """Start counting (the first step of this process begins now, ``steps_done`` steps were trained before)."""
+    def start(self, steps_done: int = 0, trained_s: Optional[float] = None) -> None:
+        """Start counting: the first step of this process begins now, ``steps_done`` steps were trained
+        before, in ``trained_s`` seconds of training (a resumed run's, from its checkpoint; None: not known,
+        and :meth:`elapsed_s` counts this process only)."""
         self._start = self._now()
+        self._before_s = trained_s
         self._marks.clear()
-        self._marks.append((steps_done, 0.0))
+        self._marks.append((steps_done, self.elapsed_s()))
+
+    @property
+    def knows_earlier_time(self) -> bool:
+        """Whether :meth:`elapsed_s` includes the training time of the steps before :meth:`start`."""
+        return self._before_s is not None
 
     @property
     def started(self) -> bool:
         return self._start is not None
 
     def elapsed_s(self) -> float:
-        """Training seconds since :meth:`start`, less paused time."""
+        """Training seconds since :meth:`start`, less paused time, plus those before it when known."""
         if self._start is None:
             return 0.0
         paused = self._paused_s + (self._now() - self._pause_started if self._pause_started is not None else 0.0)
-        return self._now() - self._start - paused
+        return (self._before_s or 0.0) + self._now() - self._start - paused
 
     @contextmanager
     def paused(self) -> Iterator[None]:

@@ -11,6 +11,7 @@ from nerfstudio.engine.optimizers import Optimizers
 from nerfstudio.engine.trainer import Trainer, TrainerConfig
 from nerfstudio.utils import writer
 from nerfstudio.utils.rich_utils import CONSOLE
+import torch
 from torch.optim import lr_scheduler
 
 from scalar_nerfstudio.atomic_io import atomic_torch_save
@@ -153,6 +154,7 @@ class ScalarTrainer(Trainer):
         self._pace_reported = False
         self._replans_done: Set[float] = set()
         self._block_pace_planned = False
+        self._trained_s_before: Optional[float] = None
 
     def setup(self, test_mode: Literal["test", "val", "inference"] = "val") -> None:
         self._total_from_plan = self.config.max_num_iterations <= 0
@@ -263,8 +265,9 @@ class ScalarTrainer(Trainer):
             CONSOLE.print(f"step {step + 1}: {pace or 0.0:.2f} steps/s over steps {first}-{step + 1}; "
                           f"{format_length(pipeline.length, pipeline.phases)}; {eta_line(self._total_steps - step - 1, pace)}")
         elif budget is not None and length.measured and (in_global or phase.block is not None and phase.start_step == 0):
-            due = [share for share in REPLAN_AT if share not in self._replans_done and clock.elapsed_s() >= share * budget]
             pace = clock.pace(last_steps=200)
+            spent = self._budget_spent_s(step + 1, pace or 0.0)
+            due = [share for share in REPLAN_AT if share not in self._replans_done and spent >= share * budget]
             if due and pace is not None:
                 self._replans_done.update(due)
                 self._replan_from_pace(step, budget, pace)
@@ -305,8 +308,10 @@ class ScalarTrainer(Trainer):
         self._replan(length, started_through=step)
 
     def _budget_spent_s(self, steps_done: int, pace: float) -> float:
-        """Training seconds of the budget spent after ``steps_done`` steps: this process's, plus, in a resumed
-        run, its earlier steps at ``pace``."""
+        """Training seconds of the budget spent after ``steps_done`` steps: the clock's (a resumed run's earlier
+        training time is in its checkpoint), or, resumed from a checkpoint without it, its earlier steps at ``pace``."""
+        if self.training_clock.knows_earlier_time:
+            return self.training_clock.elapsed_s()
         earlier = steps_done - self.training_clock.steps_seen
         return self.training_clock.elapsed_s() + (earlier / pace if pace > 0 and earlier > 0 else 0.0)
 
@@ -381,6 +386,10 @@ class ScalarTrainer(Trainer):
                 raise FileNotFoundError(f"--load-dir {load_dir}: no step-N.ckpt checkpoint in that folder.")
             self.config.load_step = step
         super()._load_checkpoint()
+        if self.config.load_dir is not None and self.config.load_step is not None:  # the training time it had spent
+            path = Path(self.config.load_dir) / checkpoint_name(self.config.load_step)
+            trained = torch.load(path, map_location="cpu", weights_only=True, mmap=True).get("training_s")
+            self._trained_s_before = None if trained is None else float(trained)
 
     def train(self) -> None:
         """Train up to ``max_num_iterations`` steps in total.
@@ -392,7 +401,7 @@ class ScalarTrainer(Trainer):
         self._total_steps = total
         self.step = max(self._start_step - 1, 0)
         self.release_finished_optimizer_state(self._start_step)  # a resumed run's finished phases
-        self.training_clock.start(self._start_step)
+        self.training_clock.start(self._start_step, self._trained_s_before)
         # A time budget waiting for its pace may train up to its longest plan; train_iteration stops it at the planned end.
         self.config.max_num_iterations = max(self._loop_bound(total) - self._start_step, 0)
         try:
@@ -434,6 +443,7 @@ class ScalarTrainer(Trainer):
             "optimizers": {k: v.state_dict() for (k, v) in self.optimizers.optimizers.items()},
             "schedulers": {k: v.state_dict() for (k, v) in self.optimizers.schedulers.items()},
             "scalers": self.grad_scaler.state_dict(),
+            "training_s": self.training_clock.elapsed_s(),  # a resumed time budget counts what was spent
         }
         atomic_torch_save(state, ckpt_path)
         if self.config.save_only_latest_checkpoint:

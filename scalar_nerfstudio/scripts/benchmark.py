@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import sys
 import time
+from pathlib import Path
 from typing import Any, Dict
 
 import tyro
@@ -31,7 +32,7 @@ from scalar_nerfstudio.benchmarking.heldout_view import write_heldout_view
 from scalar_nerfstudio.benchmarking.machine import hash_grid_speed
 from scalar_nerfstudio.benchmarking.report import results_table_text, rewrite_report, write_report
 from scalar_nerfstudio.benchmarking.schedule import prepare, run_variants
-from scalar_nerfstudio.benchmarking.variants import BenchmarkConfig, plan
+from scalar_nerfstudio.benchmarking.variants import BenchmarkConfig, check_options, plan
 
 __all__ = ["BenchmarkConfig", "entrypoint", "main", "plan"]
 
@@ -43,6 +44,14 @@ def main(config: BenchmarkConfig) -> Dict[str, Any]:
         report = rewrite_report(output_dir)
         print(results_table_text(output_dir))
         return report
+    if config.budgets is not None:
+        from scalar_nerfstudio.benchmarking.curves import run_curves
+        from scalar_nerfstudio.benchmarking.machine import describe_cpu
+
+        check_options(config)
+        if config.data is None or not Path(config.data).is_dir():
+            raise SystemExit(f"scalar-nerf-benchmark: --data {config.data} is not a scene folder")
+        return run_curves(config, command, describe_cpu())
     variants, notes = prepare(config)
     # the machine's speed around the runs (--quick: a small probe, only to exercise the harness)
     probe_size = {"num_points": 1 << 14, "log2_hashmap_size": 14, "repeats": 2} if config.quick else {}
