@@ -108,7 +108,8 @@ def _train(spec: Dict[str, Any], runs: Path, resume: bool, progress, task) -> Di
     log_path = runs / f"{spec['name']}.log"
     command = [sys.executable, "-m", "scalar_nerfstudio.benchmarking.runner", str(runner_path)]
     with log_path.open("a", buffering=1) as log:
-        process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+        process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                                   env={**os.environ, "PYTHONUNBUFFERED": "1"})
         assert process.stdout is not None
         for line in process.stdout:
             log.write(line)
@@ -154,8 +155,8 @@ def curve_table(specs: List[Dict[str, Any]], results: Dict[str, Dict[str, Any]])
                 continue
             final = result["final"]
             length = result.get("length", {})
-            steps = f"{length.get('global_steps')} + {result.get('num_blocks', 0)} x {length.get('block_steps')}" if result.get("num_blocks") \
-                else f"{result['steps']}"
+            steps = (f"{length.get('global_steps')} + {result.get('num_blocks', 0)} x {length.get('block_steps')}"
+                     if result.get("num_blocks") else f"{result['steps']}")
             drop = best_drop_db(result)
             cells.append(f"{final['psnr']:.2f} / {final['ssim']:.3f} ({format_duration(wall_clock_s(spec, result))}, {steps} steps"
                          + (f"; {drop:.2f} dB below its best" if drop > 0.005 else "") + ")")
@@ -241,8 +242,8 @@ def run_curves(config: BenchmarkConfig, command: str, machine: str) -> Dict[str,
     k = specs[0]["num_blocks_auto"] if specs else 1
     report = {"command": command, "machine": machine, "budgets": list(dict.fromkeys(s["budget"] for s in specs)),
               "automatic_k": k, "seed": config.seed, "log2_table": config.log2_table, "files": files,
-              "runs": {s["name"]: {"spec": s, "wall_clock_s": wall_clock_s(s, results[s["name"]]), "best_drop_db": best_drop_db(results[s["name"]]),
-                                   **results[s["name"]]} for s in specs},
+              "runs": {s["name"]: {"spec": s, "wall_clock_s": wall_clock_s(s, results[s["name"]]),
+                                   "best_drop_db": best_drop_db(results[s["name"]]), **results[s["name"]]} for s in specs},
               "minutes": (time.time() - started) / 60}
     atomic_write_text(output_dir / "results.json", json.dumps(report, indent=2))
     markdown = [f"# Speed against error: {config.data}", "", f"`{command}`", "", f"Machine: {machine}. Tables 2^{config.log2_table} "

@@ -176,7 +176,8 @@ def length_from_budget(
     if budget is None:
         raise LengthError("length_from_budget needs a time budget")
     if settings.global_steps is not None and settings.block_steps is not None:
-        raise LengthError("--pipeline.time-budget plans the steps: give it, or --pipeline.global-steps and --pipeline.block-steps, not all three")
+        raise LengthError("--pipeline.time-budget plans the steps: give it, or --pipeline.global-steps and "
+                          "--pipeline.block-steps, not all three")
     waves = _waves(num_blocks_trained, settings.block_workers)
     blocks_pending = waves > 0 and settings.global_steps != 0  # a run of blocks only plans them with its first steps
     if pace_steps_per_s is None or not (math.isfinite(pace_steps_per_s) and pace_steps_per_s > 0):

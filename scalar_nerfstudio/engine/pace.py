@@ -17,7 +17,10 @@ from typing import Callable, Deque, Iterator, Optional, Tuple
 
 from scalar_nerfstudio.blocks.length import format_duration
 
-__all__ = ["BLOCK_CALIBRATION_STEPS", "CALIBRATION_SKIP_STEPS", "CALIBRATION_STEPS", "REPLAN_AT", "TrainingClock", "calibration_start", "eta_line", "pace_is_due"]
+__all__ = [
+    "BLOCK_CALIBRATION_STEPS", "CALIBRATION_SKIP_STEPS", "CALIBRATION_STEPS", "REPLAN_AT", "TrainingClock", "calibration_start",
+    "eta_line", "pace_is_due",
+]
 
 #: The pace is not read over a run's first steps: the occupancy grid warms up for 128 steps and
 #: prunes empty space over its first updates, and steps then get faster.

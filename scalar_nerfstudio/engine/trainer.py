@@ -6,12 +6,12 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable, Dict, List, Literal, Optional, Set, Type
 
+import torch
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 from nerfstudio.engine.optimizers import Optimizers
 from nerfstudio.engine.trainer import Trainer, TrainerConfig
 from nerfstudio.utils import writer
 from nerfstudio.utils.rich_utils import CONSOLE
-import torch
 from torch.optim import lr_scheduler
 
 from scalar_nerfstudio.atomic_io import atomic_torch_save
@@ -290,7 +290,8 @@ class ScalarTrainer(Trainer):
             remaining = budget - self._budget_spent_s(step + 1, pace)
             self._replan(blocks_from_remaining_time(pipeline.length, pipeline.length_settings(), pipeline.num_blocks_following,
                                                     remaining, pace), started_through=step)
-            CONSOLE.print(f"step {step + 1}: the global phase took {format_duration(clock.elapsed_s())}; {format_duration(max(remaining, 0))} "
+            CONSOLE.print(f"step {step + 1}: the global phase took {format_duration(clock.elapsed_s())}; "
+                          f"{format_duration(max(remaining, 0))} "
                           f"of the budget left: {format_length(pipeline.length, pipeline.phases)}")
         upcoming = pipeline.phase_at(step + 1)
         if self._pace_reported and step + 1 == upcoming.start_step and step + 1 < self._total_steps:
@@ -406,8 +407,8 @@ class ScalarTrainer(Trainer):
         self.config.max_num_iterations = max(self._loop_bound(total) - self._start_step, 0)
         try:
             super().train()
-        finally:
-            self.config.max_num_iterations = total
+        finally:  # the run's total: a time budget's as planned while it trained
+            self.config.max_num_iterations = self._total_steps if self._total_from_plan else total
         self._report_models()
 
     def _report_models(self) -> None:
