@@ -82,8 +82,8 @@ class ScalarPipelineConfig(VanillaPipelineConfig):
     """Steps of each block's phase. None: planned, from the capture (about block-rays-per-pixel rays for every
     pixel of a block's images, at least 1000 steps) or, with time-budget, to fit the budget."""
     time_budget: Optional[str] = None
-    """Wall-clock budget of the whole run, like 90s, 45m, 2h or 1h30m: the steps not given are planned to fit it
-    at the pace measured in the run's first steps (the blocks' once more when the global phase ends).
+    """Wall-clock budget of the run's training (loading the scene is not counted), like 90s, 45m, 2h or 1h30m: the
+    steps not given are planned to fit it at the pace measured in the run's first steps, and again as it trains.
     None: the steps are planned from the capture."""
     rays_per_pixel: float = 0.5
     """Without a budget, the global phase trains this many rays per training pixel (steps = this x pixels / rays

@@ -164,6 +164,19 @@ def test_the_clock_counts_training_time_only_and_reads_the_latest_pace() -> None
     assert clock.pace(since_steps=100) == pytest.approx(4.0)
 
 
+def test_the_clock_counts_every_step_beyond_the_times_it_keeps() -> None:
+    """A run of more steps than the clock keeps times of still counts them all, and a new run has trained 0 s before:
+    (a clock that lost count added the dropped steps' time again, and ended a 4-minute budget at 200 s)."""
+    now = _FakeTime()
+    clock = TrainingClock(now=now, history=16)
+    clock.start(0, 0.0)
+    for step in range(1, 101):
+        now.t += 1.0
+        clock.mark(step)
+    assert clock.steps_seen == 100 and clock.elapsed_s() == pytest.approx(100.0) and clock.knows_earlier_time
+    assert clock.pace(last_steps=10) == pytest.approx(1.0)
+
+
 def test_a_resumed_clock_counts_from_its_first_step() -> None:
     now = _FakeTime()
     clock = TrainingClock(now=now)

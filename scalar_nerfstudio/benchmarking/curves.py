@@ -22,13 +22,12 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
-import sys
 import time
 from pathlib import Path
-from typing import Any, Dict, List, Optional, Tuple
+from typing import Any, Dict, List, Tuple
 
 from scalar_nerfstudio.atomic_io import atomic_write_bytes, atomic_write_text
+from scalar_nerfstudio.benchmarking.schedule import finished_run, run_runner
 from scalar_nerfstudio.benchmarking.variants import BenchmarkConfig, auto_k
 from scalar_nerfstudio.blocks.length import format_duration, parse_duration
 
@@ -86,17 +85,11 @@ def budget_specs(config: BenchmarkConfig, runs: Path) -> List[Dict[str, Any]]:
     return specs
 
 
-def _finished(spec: Dict[str, Any], spec_path: Path) -> Optional[Dict[str, Any]]:
-    from scalar_nerfstudio.benchmarking.schedule import finished_run
-
-    return finished_run(spec, spec_path)
-
-
 def _train(spec: Dict[str, Any], runs: Path, resume: bool, progress, task) -> Dict[str, Any]:
     """Train one budget run in its own process (or read it back / continue it with ``resume``)."""
     spec_path = runs / f"{spec['name']}.spec.json"
     if resume:
-        done = _finished(spec, spec_path)
+        done = finished_run(spec, spec_path)
         if done is not None:
             progress.console.print(f"{spec['name']}: reusing its finished run ({spec['result']})")
             return {**done, "reused": True}
@@ -105,21 +98,7 @@ def _train(spec: Dict[str, Any], runs: Path, resume: bool, progress, task) -> Di
     spec_path.write_text(json.dumps(spec, indent=2))
     runner_path = runs / f"{spec['name']}.runner.json"
     runner_path.write_text(json.dumps(runner_spec, indent=2))
-    log_path = runs / f"{spec['name']}.log"
-    command = [sys.executable, "-m", "scalar_nerfstudio.benchmarking.runner", str(runner_path)]
-    with log_path.open("a", buffering=1) as log:
-        process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                                   env={**os.environ, "PYTHONUNBUFFERED": "1"})
-        assert process.stdout is not None
-        for line in process.stdout:
-            log.write(line)
-            if line.startswith("PROGRESS "):
-                done_s, total_s = (float(x) for x in line.split()[1:3])
-                progress.update(task, completed=done_s, total=max(total_s, 1.0))
-        code = process.wait()
-    if code != 0:
-        tail = "".join(log_path.read_text().splitlines(keepends=True)[-30:])
-        raise SystemExit(f"scalar-nerf-benchmark: {spec['name']} failed (exit {code}); log {log_path}:\n{tail}")
+    run_runner(runner_path, runs / f"{spec['name']}.log", spec["name"], progress, task, append=True)
     result = json.loads(Path(spec["result"]).read_text())
     os.utime(spec["result"])  # newer than its spec: --resume reads it back
     return result
@@ -169,6 +148,7 @@ def _plots(specs: List[Dict[str, Any]], results: Dict[str, Dict[str, Any]], outp
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import FuncFormatter
 
     written = []
     for metric in ("psnr", "ssim"):
@@ -183,6 +163,9 @@ def _plots(specs: List[Dict[str, Any]], results: Dict[str, Dict[str, Any]], outp
                     curve = results[s["name"]]["curve"]
                     axis.plot([p["train_s"] / 60 for p in curve], [p[metric] for p in curve], color="grey", alpha=0.3, linewidth=0.8)
         axis.set_xscale("log")
+        minutes = FuncFormatter(lambda value, _: f"{value:g}")
+        axis.xaxis.set_major_formatter(minutes)
+        axis.xaxis.set_minor_formatter(minutes)
         axis.set_xlabel("training wall-clock (min, log scale)")
         axis.set_ylabel(f"held-out {metric.upper()}")
         axis.grid(True, which="both", alpha=0.3)

@@ -21,7 +21,10 @@ from scalar_nerfstudio.benchmarking.variants import (
     wall_clock_retry, wall_clock_variants,
 )
 
-__all__ = ["RUNNER_MODULE", "finished_run", "finished_run_of_former_name", "prepare", "run_variant", "run_variants", "variant_spec", "with_base_phase"]
+__all__ = [
+    "RUNNER_MODULE", "finished_run", "finished_run_of_former_name", "prepare", "run_runner", "run_variant", "run_variants", "variant_spec",
+    "with_base_phase",
+]
 
 #: The worker module each variant runs in (``python -m RUNNER_MODULE SPEC.json``).
 RUNNER_MODULE = "scalar_nerfstudio.benchmarking.runner"
@@ -83,23 +86,29 @@ def run_variant(config: BenchmarkConfig, variant: Variant, runs: Path, results: 
         progress.console.print(f"{variant.name}: reusing its finished run ({spec['result']})")
         return _completed(variant, {**result, "reused": True}, results)
     spec_path.write_text(json.dumps(spec, indent=2))
-    log_path = runs / f"{variant.name}.log"
+    run_runner(spec_path, runs / f"{variant.name}.log", f"variant {variant.name}", progress, task, verbose=config.verbose)
+    return _completed(variant, json.loads(Path(spec["result"]).read_text()), results)
+
+
+def run_runner(spec_path: Path, log_path: Path, what: str, progress, task, *, verbose: bool = False, append: bool = False) -> None:
+    """Run ``python -m RUNNER_MODULE spec_path``, its output to ``log_path`` (``append``: after what is there),
+    its ``PROGRESS`` lines driving ``task``; a failure ends the benchmark with ``what``, its exit code and its log's tail."""
     command = [sys.executable, "-m", RUNNER_MODULE, str(spec_path)]
-    with log_path.open("w", buffering=1) as log:  # line-buffered: the log can be followed while it runs
-        process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    with log_path.open("a" if append else "w", buffering=1) as log:  # line-buffered: the log can be followed while it runs
+        process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                                   env={**os.environ, "PYTHONUNBUFFERED": "1"})
         assert process.stdout is not None
         for line in process.stdout:
             log.write(line)
             if line.startswith("PROGRESS "):
                 done, total = (float(x) for x in line.split()[1:3])
                 progress.update(task, completed=done, total=max(total, 1.0))
-            elif config.verbose:
+            elif verbose:
                 progress.console.print(line.rstrip())
         code = process.wait()
     if code != 0:
         tail = "".join(log_path.read_text().splitlines(keepends=True)[-30:])
-        raise SystemExit(f"scalar-nerf-benchmark: variant {variant.name} failed (exit {code}); log {log_path}:\n{tail}")
-    return _completed(variant, json.loads(Path(spec["result"]).read_text()), results)
+        raise SystemExit(f"scalar-nerf-benchmark: {what} failed (exit {code}); log {log_path}:\n{tail}")
 
 
 def finished_run(spec: Dict[str, Any], spec_path: Path) -> Optional[Dict[str, Any]]:

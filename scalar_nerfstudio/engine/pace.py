@@ -42,6 +42,7 @@ class TrainingClock:
         self._now = now
         self._start: Optional[float] = None
         self._before_s: Optional[float] = None
+        self._start_steps = 0
         self._paused_s = 0.0
         self._pause_started: Optional[float] = None
         self._marks: Deque[Tuple[int, float]] = deque(maxlen=history)
@@ -53,6 +54,7 @@ class TrainingClock:
         and :meth:`elapsed_s` counts this process only)."""
         self._start = self._now()
         self._before_s = trained_s
+        self._start_steps = steps_done
         self._marks.clear()
         self._marks.append((steps_done, self.elapsed_s()))
 
@@ -93,8 +95,8 @@ class TrainingClock:
 
     @property
     def steps_seen(self) -> int:
-        """Steps trained since :meth:`start`."""
-        return self._marks[-1][0] - self._marks[0][0] if self._marks else 0
+        """Steps trained since :meth:`start` (not only those whose times are kept)."""
+        return self._marks[-1][0] - self._start_steps if self._marks else 0
 
     def pace(self, *, last_steps: Optional[int] = None, since_steps: Optional[int] = None) -> Optional[float]:
         """Steps per second over the latest ``last_steps`` steps, or since the run had done ``since_steps``

@@ -402,7 +402,8 @@ class ScalarTrainer(Trainer):
         self._total_steps = total
         self.step = max(self._start_step - 1, 0)
         self.release_finished_optimizer_state(self._start_step)  # a resumed run's finished phases
-        self.training_clock.start(self._start_step, self._trained_s_before)
+        # a new run has trained for 0 s; a resumed one for what its checkpoint says (None: a checkpoint without it)
+        self.training_clock.start(self._start_step, self._trained_s_before if self._start_step > 0 else 0.0)
         # A time budget waiting for its pace may train up to its longest plan; train_iteration stops it at the planned end.
         self.config.max_num_iterations = max(self._loop_bound(total) - self._start_step, 0)
         try:
