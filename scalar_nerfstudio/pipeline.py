@@ -102,10 +102,9 @@ class ScalarPipelineConfig(VanillaPipelineConfig):
     lr_schedule: LrSchedule = "restart"
     """restart: the global model holds its learning rates after its warm-up when blocks follow, each
     block warms up and decays over its phase; per-phase: every phase warms up and decays over its steps."""
-    one_model_restart: float = 0.0
+    one_model_restart: float = 0.5
     """A run of one model (K = 1, lr-schedule restart) holds its rates for this share of its steps
-    (0 to 1), then restarts them at the block templates' rates and decays; 0: one decay over the run (a
-    restart can end a run below its own earlier evaluations)."""
+    (0 to 1), then restarts them at the block templates' rates and decays; 0: one decay over the run."""
     scene_radius_from_depth: bool = True
     """A new run on a scene with depth images, without --pipeline.model.scene-radius, ends its rays at
     a sphere fitted to them (radius recorded in config.yml); False: rays run to the far plane."""

@@ -76,16 +76,14 @@ def test_a_new_run_is_written_at_the_current_version_and_loads_unchanged(tmp_pat
     loaded = load_run_config(tmp_path)
     assert loaded.pipeline == config.pipeline and loaded.optimizers == config.optimizers
     fresh = load_run_config(save_run_config(global_trainer_config(), tmp_path / "defaults"))
-    assert (fresh.pipeline.block_init, fresh.pipeline.lr_schedule, fresh.pipeline.one_model_restart) == ("global", "restart", 0.0)
+    assert (fresh.pipeline.block_init, fresh.pipeline.lr_schedule, fresh.pipeline.one_model_restart) == ("global", "restart", 0.5)
     assert fresh.pipeline.scene_radius_from_depth is True
 
 
 def test_options_added_one_at_a_time_load_as_trained() -> None:
     """A config.yml written between two options has the first and lacks the second: what it has is
     kept, what it lacks loads as it was trained."""
-    config = global_trainer_config()
-    config.pipeline.one_model_restart = 0.5  # not the default, so that a kept value shows
-    text = yaml.dump(config)
+    text = yaml.dump(global_trainer_config())
     no_version = ("scalar_schema_version",)
     before_restart = yaml.load(_without(text, *no_version, "one_model_restart"), Loader=yaml.Loader).pipeline
     assert before_restart.lr_schedule == "restart" and before_restart.one_model_restart == 0.0
