@@ -157,7 +157,6 @@ class ScalarTrainer(Trainer):
         self._trained_s_before: Optional[float] = None
 
     def setup(self, test_mode: Literal["test", "val", "inference"] = "val") -> None:
-        self._total_from_plan = self.config.max_num_iterations <= 0
         super().setup(test_mode=test_mode)
         pipeline = self.phased_pipeline
         pipeline.attach_run_dir(self.base_dir)
