@@ -131,7 +131,7 @@ def main() -> None:
 
     work = Path(tempfile.mkdtemp(prefix="bench-scale-"))
     scene = work / "town"
-    # The walk capture, as when docs/bench_scale.json was measured (generator version 1); memory and
+    # The walk capture, as when docs/benchmark/scale/bench_scale.json was measured (generator version 1); memory and
     # checkpoint sizes do not depend on where the cameras look.
     write_town(scene, TownConfig(num_images=args.images, width=args.size[0], height=args.size[1], capture="walk"), progress=False)
     header = (f"{'K':>3} {'train RSS MiB':>13} {'train s':>7} {'ckpt MiB':>8} {'block file MiB':>14} {'files MiB':>9} "

@@ -11,7 +11,7 @@ evaluation rays at the camera (near plane reset to 0), scalar-nerf keeps the tra
 nerfacto builds LPIPS (which downloads AlexNet weights) when it is constructed; offline that
 dies, so this benchmark replaces LPIPS by a stub for nerfacto and reports no LPIPS for it.
 
-    python benchmarks/bench_training.py --data ../shared/data/castle-P30 --minutes 12 --json docs/bench_training.json
+    python benchmarks/bench_training.py --data ../shared/data/castle-P30 --minutes 12 --json outputs/bench_training.json
 """
 
 from __future__ import annotations
@@ -182,7 +182,7 @@ def main() -> None:
         rule = "near plane reset to 0" if other["reset_near_plane"] else f"near plane kept at {r['near_plane']}"
         print(f"{r['method']:<14}{r['rays_per_step']:>10}{r['steps']:>7}{r['train_seconds']:>9.0f}{r['train_rays_per_sec']:>10.0f}{r['psnr']:>8.2f}{r['ssim']:>7.3f}{r['render_ms_per_image']:>15.0f}"
               f"   {other['psnr']:.2f} / {other['ssim']:.3f} ({rule})")
-    print(f"machine probe (hash grid fwd + bwd, 2^18 points, F=4, 2 threads; 2.8 on docs/benchmarks.md's fastest machine): "
+    print(f"machine probe (hash grid fwd + bwd, 2^18 points, F=4, 2 threads; 2.8 on docs/notebook/defaults.md's fastest machine): "
           f"{probe['before']:.2f} M points/s before the runs, {probe['after']:.2f} after")
     by_name = {r["method"]: r for r in results}
     if {"scalar-nerf", "nerfacto"} <= by_name.keys():

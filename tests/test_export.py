@@ -316,7 +316,7 @@ EXPORT_RUN = [
     "--pipeline.datamanager.train-num-rays-per-batch", "1024",
     # The paper's 128-wide decoder, which the normals' threshold below was measured with. After this
     # one-minute run the default 64-wide one's normals beat isotropic ones by less than two standard
-    # errors in some runs (0.36 and 0.40, passing at 0.43; docs/benchmarks.md, "A narrower decoder").
+    # errors in some runs (0.36 and 0.40, passing at 0.43; docs/notebook/defaults.md, "A narrower decoder").
     "--pipeline.model.field.hidden-dim", "128",
     "--steps-per-save", "100000",
 ]

@@ -25,7 +25,7 @@
 # stage killed by its time limit prints none). Seen on an H200 (2026-11-26, twice): the training
 # benchmark ran at 77-100k rays/s; test_cpp_rejects_bad_inputs crashed the process the first time
 # and passed the second (csrc/check.h); the quick subset: 473 of 474 passed, the last one since
-# changed. The rest is in docs/benchmarks.md, sections 6 and 7.
+# changed. The rest is in the dated benchmarks.md, sections 6 and 7 (docs/notebook/defaults.md, "The dated logs").
 set -uo pipefail
 cd "$(dirname "$0")/.."
 out=${OUT:-outputs/cuda-check}

@@ -1,7 +1,7 @@
 """How fast this machine is right now: a few seconds of the hash grid's forward + backward.
 
 The project's 2-core development machine ran the same code up to 1.5-2.9x apart from one hour to
-the next (docs/benchmarks.md). A benchmark's ratios are measured within one run, but its absolute
+the next (docs/notebook/defaults.md). A benchmark's ratios are measured within one run, but its absolute
 figures (rays/s, ms per view) depend on the machine's state. So the training benchmark probes
 the machine before and after its runs and prints both figures beside its own. The probe is
 section 1's measurement (`benchmarks/bench_encoding.py --features 4 --threads 2 --skip-ns`):

@@ -99,7 +99,7 @@ def setup_trainer(config):
     """The set-up trainer of ``config``, as ns-train builds it (nerfstudio's ``train_loop``): Python's,
     NumPy's and torch's random generators seeded with ``config.machine.seed`` first. Unseeded, two
     runs of one spec started from different initial weights and rays (NGP_10 on the 256 x 192 town:
-    18.38 and 17.67 dB at 6400 steps, docs/town.md)."""
+    18.38 and 17.67 dB at 6400 steps, docs/notebook/defaults.md)."""
     import random
 
     import numpy as np

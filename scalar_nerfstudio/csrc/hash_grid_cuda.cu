@@ -13,7 +13,7 @@
 //
 // Why a kernel: the torch implementation takes about ten small kernels per level and pass (16
 // levels, forward and backward), and a training step on an H200 was two-thirds launch overhead
-// (docs/benchmarks.md, section 7). Here a pass is one launch: one thread per (point, level),
+// (docs/notebook/defaults.md, "On a GPU"). Here a pass is one launch: one thread per (point, level),
 // levels on the grid's y axis. The backward adds each corner's share with atomicAdd, so the
 // order of the float32 sums (and the last bits of the gradient) can vary between runs.
 

@@ -1,4 +1,4 @@
-"""A probe (docs/notebook/fusion.md, "nearest-guarded"): a trained run with some of its blocks made empty (their
+"""A probe (docs/notebook/defaults.md, "Fusion: nearest-guarded"): a trained run with some of its blocks made empty (their
 density scaled down by e^-100, so they render the background colour everywhere, as the paper's fresh
 blocks did before the fix of 2026-11-27), fused by `nearest` and by `nearest-guarded`.
 

@@ -1,5 +1,5 @@
 """bench_render.py with the C++ sampling kernels hidden (the torch code runs): the "before" of
-docs/notebook/benchmarks.md's sampling-kernel comparison. Same arguments as benchmarks/bench_render.py.
+docs/notebook/defaults.md's sampling-kernel comparison. Same arguments as benchmarks/bench_render.py.
 
     python docs/benchmark/render/without_sampling_kernels.py --load-config RUN/config.yml --rounds 5
 """

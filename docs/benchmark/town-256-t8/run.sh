@@ -1,5 +1,5 @@
 #!/bin/sh
-# The bounded 256 x 192 2 x 2 town with tables of 2^8 (docs/notebook/town.md, "Tables of 2^8"): NGP_8, NGP_10
+# The bounded 256 x 192 2 x 2 town with tables of 2^8 (docs/notebook/defaults.md, "Blocks start as copies of the global model"): NGP_8, NGP_10
 # and the default blocks of 2^8 (auto-parallel: global phase, then the 8 blocks from its checkpoint),
 # seeds 42 and 1. The specs are those of ../town-256-t10/bounded/ with the table changed. Run from the repository root after writing the town:
 #   scalar-nerf-make-scene --scene town --output outputs/scenes/town-2x2-rig-256 --blocks-x 2 --blocks-y 2 \

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# The 3 x 3 town on one GPU with many more rays than the 2-core CPU allows (docs/notebook/town.md, section
-# "The 3 x 3 town on a GPU"). Every run starts at once and shares the GPU:
+# The 3 x 3 town on one GPU with many more rays than the 2-core CPU allows (the dated town.md, section
+# "The 3 x 3 town on a GPU"; docs/notebook/defaults.md, "The dated logs"). Every run starts at once and shares the GPU:
 #   - one model with a 2^T, a 2^(T+2) and a 2^(T+4) table, STEPS steps each (the benchmark's
 #     one-model runs: its runner, its specs);
 #   - the global phase (GLOBAL_STEPS steps, 2^T, automatic K), then its blocks trained at once by
