@@ -29,8 +29,10 @@ def build_modules(features: int, log2_hashmap_size: int, max_resolution: int, ke
     levels of ``2**log2_hashmap_size`` rows (ours stores the coarse levels densely, hence fewer rows).
     ``kernel``: ``cpp`` or ``cuda``, the implementation of the first entry, ``ours-<kernel>``."""
     return {
-        f"ours-{kernel}": HashGridEncoding(16, features, log2_hashmap_size, 16, max_resolution, implementation=kernel),
-        "ours-torch": HashGridEncoding(16, features, log2_hashmap_size, 16, max_resolution, implementation="torch"),
+        f"ours-{kernel}": HashGridEncoding(num_levels=16, features_per_level=features, log2_hashmap_size=log2_hashmap_size,
+                                           base_resolution=16, max_resolution=max_resolution, implementation=kernel),
+        "ours-torch": HashGridEncoding(num_levels=16, features_per_level=features, log2_hashmap_size=log2_hashmap_size, base_resolution=16,
+                                       max_resolution=max_resolution, implementation="torch"),
         "ns-torch": HashEncoding(
             num_levels=16,
             min_res=16,

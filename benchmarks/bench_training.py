@@ -45,7 +45,7 @@ def parse_settings(items: List[str]) -> Dict[str, object]:
     return settings
 
 
-def train_one(method: str, data: str, downscale: int, seconds: float, steps: int, out: Path, settings: Dict[str, object],
+def train_one(method: str, data: str, *, downscale: int, seconds: float, steps: int, out: Path, settings: Dict[str, object],
               device: str = "cpu", rays_per_batch: int = 0) -> None:
     """Train ``method`` for ``seconds`` of wall clock (or ``steps``) on ``device`` ("cpu" or "cuda"),
     evaluate, write ``out`` (JSON).
@@ -158,7 +158,8 @@ def main() -> None:
     args = parser.parse_args()
     if args.worker:
         method, data, downscale, seconds, steps, out, settings, device, rays = args.worker
-        train_one(method, data, int(downscale), float(seconds), int(steps), Path(out), json.loads(settings), device, int(rays))
+        train_one(method, data, downscale=int(downscale), seconds=float(seconds), steps=int(steps), out=Path(out),
+                  settings=json.loads(settings), device=device, rays_per_batch=int(rays))
         return
     settings = parse_settings(args.scalar_set)  # a malformed setting is refused before anything trains
     if args.device == "cuda":

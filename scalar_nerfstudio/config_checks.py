@@ -46,7 +46,7 @@ def _is_int(value: Any) -> TypeGuard[int]:
     return isinstance(value, int) and not isinstance(value, bool)
 
 
-def _at_least(owner: Any, name: str, low: int, why: str = "", prefix: str = "--pipeline.", optional: bool = False) -> None:
+def _at_least(owner: Any, name: str, low: int, *, why: str = "", prefix: str = "--pipeline.", optional: bool = False) -> None:
     value = getattr(owner, name, None)
     if value is None and optional:
         return
@@ -84,15 +84,15 @@ def check_pipeline_options(pipeline: Any, num_train_images: Optional[int] = None
     if len(values) != 3 or not all(isinstance(s, (int, float)) and math.isfinite(s) and s >= 1.0 for s in values):
         raise OptionError(f"--pipeline.aabb-scale {_show(scale)}: must be three finite numbers >= 1 (x y z scale of each block's "
                           f"camera box; 1 1 1 gives disjoint blocks, 1.2 1.2 1.2 is the paper's default).")
-    _at_least(pipeline, "min_images_per_block", 1, " (a block needs at least one training image)")
+    _at_least(pipeline, "min_images_per_block", 1, why=" (a block needs at least one training image)")
     _at_least(pipeline, "max_auto_blocks", 1)
     _at_least(pipeline, "auto_min_images_per_block", 1)
-    _at_least(pipeline, "min_overlap_images", 0, " (0: blocks are not grown to overlap)")
+    _at_least(pipeline, "min_overlap_images", 0, why=" (0: blocks are not grown to overlap)")
     seed = getattr(pipeline, "split_seed", 0)
     if not _is_int(seed) or not 0 <= seed < 2**32:
         raise OptionError(f"--pipeline.split-seed {_show(seed)}: must be a whole number in [0, 2^32).")
-    _at_least(pipeline, "global_steps", 0, " (or left out: planned from the capture or --pipeline.time-budget)", optional=True)
-    _at_least(pipeline, "block_steps", 0, " (or left out: planned from the capture or --pipeline.time-budget)", optional=True)
+    _at_least(pipeline, "global_steps", 0, why=" (or left out: planned from the capture or --pipeline.time-budget)", optional=True)
+    _at_least(pipeline, "block_steps", 0, why=" (or left out: planned from the capture or --pipeline.time-budget)", optional=True)
     if getattr(pipeline, "global_steps", 1) == 0 and (getattr(pipeline, "block_steps", 1) == 0 or not getattr(pipeline, "train_blocks", True)):
         raise OptionError("--pipeline.global-steps 0 leaves nothing to train (the blocks get no steps either); give the global "
                           "phase (--pipeline.global-steps) or the blocks (--pipeline.block-steps, --pipeline.train-blocks True) some steps.")
@@ -133,7 +133,7 @@ def _check_length(pipeline: Any) -> None:
         value = getattr(pipeline, name, 1.0)
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value > 0):
             raise OptionError(f"{_flag(name)} {_show(value)}: must be a number > 0 (how often a phase draws each pixel on average).")
-    _at_least(pipeline, "block_workers", 1, " (blocks that train at once, on other processes or machines)")
+    _at_least(pipeline, "block_workers", 1, why=" (blocks that train at once, on other processes or machines)")
 
 
 def check_block_counts(pipeline: Any, num_train_images: int, num_frames: Optional[int] = None) -> None:
@@ -180,9 +180,9 @@ def _check_model(model: Any) -> None:
     _at_least(model, "eval_num_rays_per_chunk", 1, prefix=prefix, optional=True)  # None: by device
     for name in ("num_samples_per_ray", "occupancy_resolution", "occupancy_update_every"):
         _at_least(model, name, 1, prefix=prefix)
-    _at_least(model, "warmup_samples_per_ray", 0, " (0: num-samples-per-ray during the warm-up too)", prefix=prefix, optional=True)
-    _at_least(model, "render_occupancy_resolution", 0, " (0: rendering uses the training grid)", prefix=prefix, optional=True)
-    _at_least(model, "blocks_per_ray", 0, " (0: every block on every ray)", prefix=prefix, optional=True)
+    _at_least(model, "warmup_samples_per_ray", 0, why=" (0: num-samples-per-ray during the warm-up too)", prefix=prefix, optional=True)
+    _at_least(model, "render_occupancy_resolution", 0, why=" (0: rendering uses the training grid)", prefix=prefix, optional=True)
+    _at_least(model, "blocks_per_ray", 0, why=" (0: every block on every ray)", prefix=prefix, optional=True)
     for name in ("idw_gamma", "nearest_idw_gamma"):
         gamma = getattr(model, name, None)
         if gamma is not None and (isinstance(gamma, bool) or not isinstance(gamma, (int, float)) or not (math.isfinite(gamma) and gamma >= 0)):
@@ -190,7 +190,7 @@ def _check_model(model: Any) -> None:
     guard = getattr(model, "guard_accumulation", None)
     if guard is not None and (isinstance(guard, bool) or not isinstance(guard, (int, float)) or not (math.isfinite(guard) and 0 < guard <= 1)):
         raise OptionError(f"{_flag('guard_accumulation', prefix)} {_show(guard)}: must be a number in (0, 1] (an accumulated opacity).")
-    _at_least(model, "block_fit_steps", 0, " (0: a fitted block keeps its fresh table)", prefix=prefix, optional=True)
+    _at_least(model, "block_fit_steps", 0, why=" (0: a fitted block keeps its fresh table)", prefix=prefix, optional=True)
     _at_least(model, "block_fit_points", 1, prefix=prefix, optional=True)
     near, far = getattr(model, "near_plane", 0.0), getattr(model, "far_plane", 1.0)
     if not (isinstance(near, (int, float)) and isinstance(far, (int, float)) and 0 <= near < far):
@@ -242,10 +242,10 @@ def _check_data(datamanager: Any) -> None:
 
 def check_trainer_options(config: Any) -> None:
     """Check the trainer-level options (step counts) of a ``ScalarTrainerConfig``; pure."""
-    _at_least(config, "max_num_iterations", 0, " (0: train every phase)", prefix="--")
+    _at_least(config, "max_num_iterations", 0, why=" (0: train every phase)", prefix="--")
     _at_least(config, "steps_per_save", 1, prefix="--")
     for name in ("steps_per_eval_batch", "steps_per_eval_image", "steps_per_eval_all_images"):
-        _at_least(config, name, 0, " (0: never)", prefix="--")
+        _at_least(config, name, 0, why=" (0: never)", prefix="--")
 
 
 def check_options(config: Any, num_train_images: Optional[int] = None, num_frames: Optional[int] = None) -> None:
@@ -290,7 +290,9 @@ def check_block_plan(pipeline: Any, data: Path) -> None:
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            plan_blocks(*camera_layout(parsed), image_names=[str(p) for p in parsed.image_filenames], settings=plan_settings())
+            layout = camera_layout(parsed)
+            plan_blocks(layout.centres, layout.directions, layout.focal_px, image_pixels=layout.image_pixels,
+                        image_names=[str(p) for p in parsed.image_filenames], settings=plan_settings())
     except BlockSplitError as error:
         asked = "--pipeline.num-blocks " + _show(pipeline.num_blocks) if pipeline.num_blocks is not None else "the automatic number of blocks"
         raise OptionError(

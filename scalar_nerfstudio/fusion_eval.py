@@ -37,7 +37,7 @@ def _eval_images(pipeline: "ScalarPipeline", max_images: Optional[int]) -> List[
     return [pairs[int(i * step)] for i in range(max_images)]
 
 
-def render_eval_images(pipeline: "ScalarPipeline", mode: str, blocks_per_ray: Optional[int] = None,
+def render_eval_images(pipeline: "ScalarPipeline", mode: str, *, blocks_per_ray: Optional[int] = None,
                        max_images: Optional[int] = None) -> Tuple[Dict[str, float], List[torch.Tensor]]:
     """Mean metrics and ms/image of ``mode`` over the eval images (with ``blocks_per_ray`` if given),
     and the rendered images ``[H, W, 3]`` in [0, 1] in the eval dataloader's order. Leaves the model
@@ -78,6 +78,7 @@ def render_eval_images(pipeline: "ScalarPipeline", mode: str, blocks_per_ray: Op
 def evaluate_fusion_modes(
     pipeline: "ScalarPipeline",
     modes: Sequence[str],
+    *,
     measure_selection: bool = True,
     on_mode: Optional[Callable[[str, Dict[str, float]], None]] = None,
     max_images: Optional[int] = None,

@@ -136,7 +136,8 @@ class ScalarPipelineConfig(VanillaPipelineConfig):
 
     def automatic_num_blocks(self, scale: LayoutScale, num_images: int) -> int:
         """The automatic K for a camera layout of ``num_images`` training images (blocks/capacity.py)."""
-        return auto_num_blocks(scale, self.model.field.log2_hashmap_size, num_images, self.auto_min_images_per_block, self.max_auto_blocks)
+        return auto_num_blocks(scale, log2_hashmap_size=self.model.field.log2_hashmap_size, num_images=num_images,
+                               min_images_per_block=self.auto_min_images_per_block, max_blocks=self.max_auto_blocks)
 
     def length_settings(self) -> LengthSettings:
         """The options a run's length is planned from (blocks/length.py); a scalar-nerf-block run plans its one block."""
@@ -168,6 +169,7 @@ class ScalarPipeline(VanillaPipeline):
         self,
         config: ScalarPipelineConfig,
         device: str,
+        *,
         test_mode: Literal["test", "val", "inference"] = "val",
         world_size: int = 1,
         local_rank: int = 0,
@@ -243,11 +245,12 @@ class ScalarPipeline(VanillaPipeline):
                     f"{len(names)} parsed from {self.config.datamanager.data} (different scene or dataparser options)"
                 )
         layout = camera_layout(parsed)
-        plan = plan_blocks(*layout, image_names=names, settings=self.config.plan_settings(), given_split=given)
+        plan = plan_blocks(layout.centres, layout.directions, layout.focal_px, image_pixels=layout.image_pixels, image_names=names,
+                           settings=self.config.plan_settings(), given_split=given)
         pixels = [int(p) for p in layout.image_pixels]
         blocks = [plan.split.blocks[k] for k in plan.held_blocks] if not plan.single_model else []
         block_pixels = [sum(pixels[i] for i in block.image_indices) for block in blocks]
-        return replace(plan, length=plan_length(self.config.length_settings(), sum(pixels), block_pixels))
+        return replace(plan, length=plan_length(self.config.length_settings(), train_pixels=sum(pixels), block_pixels=block_pixels))
 
     def _phases(self) -> List[Phase]:
         assert self.plan.length is not None
@@ -284,8 +287,9 @@ class ScalarPipeline(VanillaPipeline):
             return None
         cameras = parsed.cameras
         return block_observation(
-            cameras.camera_to_worlds, cameras.fx.reshape(-1), cameras.fy.reshape(-1), cameras.cx.reshape(-1), cameras.cy.reshape(-1),
-            cameras.width.reshape(-1), cameras.height.reshape(-1), [block.image_indices for block in self.split.blocks],
+            cameras.camera_to_worlds, fx=cameras.fx.reshape(-1), fy=cameras.fy.reshape(-1), cx=cameras.cx.reshape(-1),
+            cy=cameras.cy.reshape(-1), width=cameras.width.reshape(-1), height=cameras.height.reshape(-1),
+            block_images=[block.image_indices for block in self.split.blocks],
         )
 
     @property
@@ -421,8 +425,8 @@ class ScalarPipeline(VanillaPipeline):
 
     def plan_report(self) -> str:
         """The split, the automatic K, the block capacities and the phases, for the training log."""
-        return format_plan_report(self.plan, self.phases, self.config.model.field.log2_hashmap_size, self.config.block_init,
-                                  torch.device(self.device).type)
+        return format_plan_report(self.plan, self.phases, log2_hashmap_size=self.config.model.field.log2_hashmap_size,
+                                  block_init=self.config.block_init, device_type=torch.device(self.device).type)
 
     def get_average_eval_image_metrics(
         self, step: Optional[int] = None, output_path: Optional[Path] = None, get_std: bool = False

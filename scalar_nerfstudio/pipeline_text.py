@@ -16,7 +16,7 @@ __all__ = ["format_eval_metrics", "format_length", "format_plan_report", "sequen
 _BLOCK_START = {"global": " (starts as a copy of the global model)", "fitted": " (its table fitted to the global model first)"}
 
 
-def format_plan_report(plan: BlockPlan, phases: Sequence[Phase], log2_hashmap_size: int, block_init: str, device_type: str) -> str:
+def format_plan_report(plan: BlockPlan, phases: Sequence[Phase], *, log2_hashmap_size: int, block_init: str, device_type: str) -> str:
     """The split, the automatic K, the block capacities and the phases, for the training log.
 
     Args:

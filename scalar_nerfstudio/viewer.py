@@ -105,7 +105,7 @@ class BlockOverlay(ViewerControl):
         point_size: size of the camera points (viewer scene units).
     """
 
-    def __init__(self, split: BlockSplit, camera_centres: np.ndarray, line_width: float = 2.0, point_size: float = 0.4) -> None:
+    def __init__(self, split: BlockSplit, camera_centres: np.ndarray, *, line_width: float = 2.0, point_size: float = 0.4) -> None:
         self.split = split
         self.camera_centres = np.asarray(camera_centres, dtype=np.float32)
         self.line_width = line_width

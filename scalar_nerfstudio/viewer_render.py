@@ -73,6 +73,7 @@ class RenderSpeed:
 def coarse_resolution(
     aspect: float,
     seconds_per_pixel: Optional[float],
+    *,
     budget_s: float = COARSE_BUDGET_S,
     min_height: int = COARSE_MIN_HEIGHT,
     max_height: int = COARSE_MAX_HEIGHT,
@@ -103,7 +104,7 @@ class ProgressiveRenderStateMachine(RenderStateMachine):
     coarse_max_height: int = COARSE_MAX_HEIGHT
     unmeasured_height: int = UNMEASURED_HEIGHT
 
-    def __init__(self, viewer: Any, viser_scale_ratio: float, client: Any, speed: Optional[RenderSpeed] = None) -> None:
+    def __init__(self, viewer: Any, viser_scale_ratio: float, client: Any, *, speed: Optional[RenderSpeed] = None) -> None:
         super().__init__(viewer, viser_scale_ratio, client)
         self.speed = speed if speed is not None else RenderSpeed()
         self.shown_resolution: Optional[Tuple[int, int]] = None
@@ -149,8 +150,8 @@ class ProgressiveRenderStateMachine(RenderStateMachine):
             return None
         full_height, full_width = RenderStateMachine._calculate_image_res(self, aspect)
         height, width = coarse_resolution(
-            aspect, self.speed.seconds_per_pixel, self.coarse_budget_s,
-            self.coarse_min_height, self.coarse_max_height, self.unmeasured_height,
+            aspect, self.speed.seconds_per_pixel, budget_s=self.coarse_budget_s,
+            min_height=self.coarse_min_height, max_height=self.coarse_max_height, unmeasured_height=self.unmeasured_height,
         )
         if width > full_width:  # a very wide view: Max res bounds the width
             height, width = max(1, int(full_width * height / width)), full_width
@@ -189,7 +190,7 @@ class ProgressiveMachines(dict):
     def __setitem__(self, client_id: int, machine: RenderStateMachine) -> None:
         if type(machine) is RenderStateMachine:
             running = machine.ident is not None
-            replacement = ProgressiveRenderStateMachine(machine.viewer, machine.viser_scale_ratio, machine.client, self.speed)
+            replacement = ProgressiveRenderStateMachine(machine.viewer, machine.viser_scale_ratio, machine.client, speed=self.speed)
             if running:
                 machine.running = False
                 machine.interrupt_render_flag = True

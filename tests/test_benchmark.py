@@ -165,7 +165,7 @@ def test_fusions_option_sets_the_modes_every_block_variant_is_evaluated_with(tmp
     by_name = {v.name: v for v in plan(config)[0]}
     assert by_name["scalar"].fusions == by_name["scalar-wo-sd"].fusions == ["nearest-guarded", "global-only"]
     assert by_name["ngp-t"].fusions == by_name["global"].fusions == ["global"]
-    spec = variant_spec(config, by_name["scalar"], tmp_path, {"global": {"checkpoint": "g.ckpt"}})
+    spec = variant_spec(config, by_name["scalar"], runs=tmp_path, results={"global": {"checkpoint": "g.ckpt"}})
     assert spec["fusions"] == ["nearest-guarded", "global-only"]
     default = {v.name: v for v in plan(BenchmarkConfig(data=tmp_path, variants=("scalar",)))[0]}
     assert default["scalar"].fusions == ["global", "surface", "idw", "nearest", "global-only"]
@@ -233,8 +233,8 @@ def test_decoder_width_option_reaches_every_variant_of_ours_and_the_report(tmp_p
         "global", "ngp-t", "ngp-t2", "scalar"}
     assert "pipeline.model.field.hidden_dim" not in by_name["nerfacto"].overrides
     assert decoder_width_used(config) == 128 and decoder_width_used(BenchmarkConfig(data=tmp_path)) == 64
-    assert "decoder 128 wide" in markdown(config, [], {}, "cmd", "2 CPU cores", {}, decoder_width=128)
-    assert "decoder width not recorded" in markdown(config, [], {}, "cmd", "2 CPU cores", {})
+    assert "decoder 128 wide" in markdown(config, [], notes={}, command="cmd", machine="2 CPU cores", results={}, decoder_width=128)
+    assert "decoder width not recorded" in markdown(config, [], notes={}, command="cmd", machine="2 CPU cores", results={})
 
 
 def test_the_report_shows_depth_where_the_scene_has_it(tmp_path: Path) -> None:
@@ -249,10 +249,11 @@ def test_the_report_shows_depth_where_the_scene_has_it(tmp_path: Path) -> None:
         return {"final": final, "steps": 100, "train_s": 1.0, "train_rays_per_s": 1.0, "parameters": 1, "peak_rss_mib": 1.0}
 
     config = BenchmarkConfig(data=tmp_path, variants=("ngp-t", "ngp-t2"))
-    with_depth = markdown(config, rows({"ngp-t": result(18.0, 0.318), "ngp-t2": result(19.1, 0.456)}), {}, "cmd", "2 CPU cores")
+    with_depth = markdown(config, rows({"ngp-t": result(18.0, 0.318), "ngp-t2": result(19.1, 0.456)}), notes={}, command="cmd",
+                          machine="2 CPU cores")
     assert "depth within 25 % |" in with_depth
     assert "| 19.10 | 0.500 | 45.6% |" in with_depth and "| 18.00 | 0.500 | 31.8% |" in with_depth
-    without = markdown(config, rows({"ngp-t": result(18.0), "ngp-t2": result(19.1)}), {}, "cmd", "2 CPU cores")
+    without = markdown(config, rows({"ngp-t": result(18.0), "ngp-t2": result(19.1)}), notes={}, command="cmd", machine="2 CPU cores")
     assert "depth within" not in without and "| 19.10 | 0.500 | 10 |" in without
 
 
@@ -448,7 +449,7 @@ def test_the_same_spec_trains_the_same_model_and_another_seed_another(scene: Pat
     assert not (tmp_path / "bad.json").exists() and not list((tmp_path / "bad").rglob("*.ckpt"))
     config = BenchmarkConfig(data=tmp_path, variants=("ngp-t", "auto"), seed=7)
     with mock.patch("scalar_nerfstudio.benchmarking.variants.auto_k", return_value=3):
-        specs = [variant_spec(config, v, tmp_path, {"global": {"checkpoint": "g.ckpt"}}) for v in plan(config)[0]]
+        specs = [variant_spec(config, v, runs=tmp_path, results={"global": {"checkpoint": "g.ckpt"}}) for v in plan(config)[0]]
     assert [spec["overrides"]["machine.seed"] for spec in specs] == [7, 7, 7]  # global, ngp-t, auto
 
 

@@ -24,7 +24,8 @@ def test_resume_reads_a_run_recorded_under_a_former_name(tmp_path: Path) -> None
     config = BenchmarkConfig(data=tmp_path, output_dir=tmp_path / "bench", log2_table=10, variants=("ngp-t",), resume=True)
     variant = plan(config)[0][0]
     assert variant.name == "ngp-t"
-    (runs / "ngp19.spec.json").write_text(json.dumps(variant_spec(config, dataclasses.replace(variant, name="ngp19"), runs, {})))
+    former = dataclasses.replace(variant, name="ngp19")
+    (runs / "ngp19.spec.json").write_text(json.dumps(variant_spec(config, former, runs=runs, results={})))
     checkpoints = tmp_path / "run" / "nerfstudio_models"
     checkpoints.mkdir(parents=True)
     (checkpoints / "step-000001599.ckpt").write_bytes(b"")
@@ -33,7 +34,7 @@ def test_resume_reads_a_run_recorded_under_a_former_name(tmp_path: Path) -> None
     def run(config) -> dict:
         with mock.patch.object(schedule.subprocess, "Popen", side_effect=RuntimeError("trains")):
             try:
-                return schedule.run_variant(config, variant, runs, {}, mock.MagicMock(), 0)
+                return schedule.run_variant(config, variant, runs=runs, results={}, progress=mock.MagicMock(), task=0)
             except RuntimeError:
                 return {}
 
@@ -202,7 +203,7 @@ def test_the_benchmark_trains_the_wall_clock_run_after_the_others_and_reports_it
     variants = plan(config)[0]
     parallel = {"steps": 7700, "train_s": 658.0, "parallel_train_s": 140.0, "curve": [], "final": {"psnr": 19.14}}
 
-    def fake_run(config, variant, runs, results, progress, task):
+    def fake_run(config, variant, *, runs, results, progress, task):
         if variant.name == "ngp-t":
             results["auto-parallel"] = parallel  # as if a block variant had run before it
             return {"steps": 1600, "train_s": 119.0, "curve": [{"step": 1600, "train_s": 119.0, "psnr": 17.65}], "final": {"psnr": 17.65}}
@@ -235,7 +236,7 @@ def test_a_wall_clock_run_that_ends_away_from_the_blocks_is_planned_again_from_i
     parallel = {"steps": 7700, "train_s": 658.0, "parallel_train_s": 140.0, "curve": [], "final": {"psnr": 19.14}}
     ends = {"ngp-t-wall-clock": (1883, 128.0, 18.00), "ngp-t-wall-clock-2": (2060, 139.0, 18.10)}
 
-    def fake_run(config, variant, runs, results, progress, task):
+    def fake_run(config, variant, *, runs, results, progress, task):
         if variant.name == "ngp-t":
             results["auto-parallel"] = parallel
             return {"name": "ngp-t", "steps": 1600, "train_s": 119.0, "curve": [], "final": {"psnr": 17.65}}
@@ -316,7 +317,7 @@ def test_resume_reuses_a_finished_run_of_the_same_spec_and_trains_a_changed_one(
     def run(config) -> dict:
         with mock.patch.object(schedule.subprocess, "Popen", side_effect=stopped) as popen:
             try:
-                return schedule.run_variant(config, variant, runs, {}, mock.MagicMock(), 0)
+                return schedule.run_variant(config, variant, runs=runs, results={}, progress=mock.MagicMock(), task=0)
             except RuntimeError:
                 assert popen.call_count == 1
                 return {}
@@ -367,7 +368,7 @@ def test_resume_reads_a_block_variant_with_its_global_phase_once_and_notes_every
                 "curve": [{"step": steps, "train_s": train_s, "psnr": psnr}], "final": {"psnr": psnr}, **extra}
 
     def save(variant, result: dict, results: dict) -> None:
-        (runs / f"{variant.name}.spec.json").write_text(json.dumps(variant_spec(config, variant, runs, results)))
+        (runs / f"{variant.name}.spec.json").write_text(json.dumps(variant_spec(config, variant, runs=runs, results=results)))
         (runs / f"{variant.name}.json").write_text(json.dumps(result))
 
     earlier: dict = {}
@@ -381,7 +382,7 @@ def test_resume_reads_a_block_variant_with_its_global_phase_once_and_notes_every
     assert first_rerun.overrides["pipeline.global_steps"] == 1875  # ceil(410 x 1600 / 350)
     save(first_rerun, finished("ngp-t-wall-clock", 1875, 380.0, 17.7), earlier)  # 7 % short of 410 s
 
-    def fake_train(config, variant, runs, results, progress, task):
+    def fake_train(config, variant, *, runs, results, progress, task):
         assert variant.name == "ngp-t-wall-clock-2", f"{variant.name} should have been reused"
         assert variant.overrides["pipeline.global_steps"] == 2024  # ceil(410 x 1875 / 380)
         return finished("ngp-t-wall-clock-2", 2024, 408.0, 17.8)
@@ -390,11 +391,12 @@ def test_resume_reads_a_block_variant_with_its_global_phase_once_and_notes_every
     real_run_variant = schedule.run_variant
     trained = []
 
-    def run_or_reuse(config, variant, runs, results, progress, task):
-        result = real_run_variant(config, variant, runs, results, progress, task) if variant.name != "ngp-t-wall-clock-2" else None
+    def run_or_reuse(config, variant, *, runs, results, progress, task):
+        result = (real_run_variant(config, variant, runs=runs, results=results, progress=progress, task=task)
+                  if variant.name != "ngp-t-wall-clock-2" else None)
         if result is None:
             trained.append(variant.name)
-            return fake_train(config, variant, runs, results, progress, task)
+            return fake_train(config, variant, runs=runs, results=results, progress=progress, task=task)
         return result
 
     with mock.patch.object(schedule, "run_variant", side_effect=run_or_reuse), \

@@ -36,7 +36,8 @@ def test_fit_reproduces_a_teacher_the_student_can_represent(student_frame: str) 
         to_student, sample = (lambda p: p), _uniform_points(generator)
     else:
         to_student, sample = (lambda p: (p - 0.5) * 2.0 + 0.5), (lambda count: 0.25 + 0.5 * torch.rand(count, 3, generator=generator))
-    fit = fit_encoding(student, to_student, teacher, lambda p: p, sample, steps=300, points_per_step=16384, learning_rate=2e-2)
+    fit = fit_encoding(student, student_unit=to_student, teacher=teacher, teacher_unit=lambda p: p, sample_points=sample, steps=300,
+                       points_per_step=16384, learning_rate=2e-2)
     assert fit.steps == 300
     assert fit.initial_error > 0.01  # the teacher's features: uniform in +-0.5, interpolated (variance ~0.025)
     assert fit.final_error < (0.01 if student_frame == "same" else 0.1) * fit.initial_error, fit  # finer cells: not aligned with the teacher's
@@ -46,15 +47,16 @@ def test_a_coarser_student_cannot_follow_the_teacher() -> None:
     """The other way round (a block's contracted outside, seen from the global frame) a fit leaves most
     of the error: what the fit reports is measured, not assumed."""
     teacher, student = _grid(0, 0.5), _grid(1, 1e-4)
-    fit = fit_encoding(student, lambda p: (p - 0.5) * 0.5 + 0.5, teacher, lambda p: p, _uniform_points(torch.Generator().manual_seed(2)),
-                       steps=300, points_per_step=4096, learning_rate=2e-2)
+    fit = fit_encoding(student, student_unit=lambda p: (p - 0.5) * 0.5 + 0.5, teacher=teacher, teacher_unit=lambda p: p,
+                       sample_points=_uniform_points(torch.Generator().manual_seed(2)), steps=300, points_per_step=4096, learning_rate=2e-2)
     assert fit.final_error > 0.5 * fit.initial_error, fit
 
 
 def test_fit_without_steps_changes_nothing() -> None:
     teacher, student = _grid(0, 0.5), _grid(1, 1e-4)
     before = student.table.detach().clone()
-    fit = fit_encoding(student, lambda p: p, teacher, lambda p: p, _uniform_points(torch.Generator().manual_seed(0)), steps=0)
+    fit = fit_encoding(student, student_unit=lambda p: p, teacher=teacher, teacher_unit=lambda p: p,
+                       sample_points=_uniform_points(torch.Generator().manual_seed(0)), steps=0)
     assert torch.equal(student.table, before)
     assert fit.final_error == fit.initial_error
 
@@ -62,13 +64,15 @@ def test_fit_without_steps_changes_nothing() -> None:
 def test_fit_refuses_grids_of_different_widths() -> None:
     teacher = HashGridEncoding(num_levels=4, features_per_level=2, log2_hashmap_size=10, base_resolution=4, max_resolution=32)
     with pytest.raises(ValueError, match="encodes 16 features, teacher 8"):
-        fit_encoding(_grid(1, 1e-4), lambda p: p, teacher, lambda p: p, _uniform_points(torch.Generator()), steps=1)
+        fit_encoding(_grid(1, 1e-4), student_unit=lambda p: p, teacher=teacher, teacher_unit=lambda p: p,
+                     sample_points=_uniform_points(torch.Generator()), steps=1)
 
 
 def test_cell_sampler_draws_inside_its_cells_and_repeats_with_its_seed() -> None:
     resolution = 8
     cells = torch.tensor([0, 9, 100, 511])
-    draw = lambda seed: occupied_cell_sampler(cells, resolution, lambda u: u * 10.0, torch.Generator().manual_seed(seed))(5000)  # noqa: E731
+    draw = lambda seed: occupied_cell_sampler(  # noqa: E731
+        cells, resolution, to_world=lambda u: u * 10.0, generator=torch.Generator().manual_seed(seed))(5000)
     points = draw(3)
     unit = points / 10.0
     index = (unit * resolution).long()
@@ -76,7 +80,7 @@ def test_cell_sampler_draws_inside_its_cells_and_repeats_with_its_seed() -> None
     assert set(flat.unique().tolist()) == set(cells.tolist())  # every cell drawn, no other
     assert torch.equal(points, draw(3)) and not torch.equal(points, draw(4))
     with pytest.raises(ValueError, match="at least one cell"):
-        occupied_cell_sampler(cells[:0], resolution, lambda u: u)
+        occupied_cell_sampler(cells[:0], resolution, to_world=lambda u: u)
 
 
 def _block_render_errors(trainer, block: int) -> float:

@@ -91,12 +91,12 @@ def test_released_tensors_keep_their_objects_and_install_checks_shapes() -> None
     saved = {k: v.clone() for k, v in module.state_dict().items()}
     release_tensors(module)
     assert is_released(module) and module.weight is weight  # an optimiser's reference stays valid
-    install_tensors(module, saved, specs, "block 9")
+    install_tensors(module, saved, specs=specs, what="block 9")
     assert torch.equal(module.weight, saved["weight"]) and module.weight is weight
     with pytest.raises(ValueError, match=r"block 9: weight is \[3, 5\]"):
-        install_tensors(module, {**saved, "weight": torch.zeros(3, 5)}, specs, "block 9")
+        install_tensors(module, {**saved, "weight": torch.zeros(3, 5)}, specs=specs, what="block 9")
     with pytest.raises(ValueError, match="1 tensors missing"):
-        install_tensors(module, {"weight": saved["weight"]}, specs, "block 9")
+        install_tensors(module, {"weight": saved["weight"]}, specs=specs, what="block 9")
 
 
 def test_block_store_keeps_weights_in_files_loads_them_back_bounded_and_never_loses_a_trained_block(tmp_path: Path) -> None:
@@ -107,7 +107,7 @@ def test_block_store_keeps_weights_in_files_loads_them_back_bounded_and_never_lo
     assert all(is_released(blocks[str(b)]) for b in range(3))
     assert 0 < store.parameter_count(0, "encoder") < store.parameter_count(0)  # known without the weights
     weights = {k: v.clone() + 1.0 if v.is_floating_point() else v.clone() for k, v in small_scalar_model(num_train_data=2).state_dict().items()}
-    store.install(0, weights, "block 0", evictable=False)
+    store.install(0, weights, what="block 0", evictable=False)
     assert store.is_resident(0) and torch.equal(blocks["0"].field.encoder.table, weights["field.encoder.table"])
     with pytest.raises(RuntimeError, match="not saved to its file"):
         store.release(0, started=True)
@@ -117,7 +117,7 @@ def test_block_store_keeps_weights_in_files_loads_them_back_bounded_and_never_lo
     assert store.store(0) == block_model_path(tmp_path, 0) and not store.is_resident(0) and is_released(blocks["0"])
     with pytest.raises(RuntimeError, match="has not started"):
         store.model(1)
-    store.install(1, weights, "block 1", evictable=False)
+    store.install(1, weights, what="block 1", evictable=False)
     store.store(1)
     assert torch.equal(store.model(0).field.encoder.table, weights["field.encoder.table"])  # loaded from its file
     store.model(1)  # a second loaded block: the least recently used one (0) leaves memory

@@ -25,7 +25,7 @@ from scalar_nerfstudio.fusion import (
     surface_points,
     weights_winner,
 )
-from scalar_nerfstudio.models.block_selection import blocks_for, select_rays
+from scalar_nerfstudio.models.block_selection import BlockRegions, blocks_for, select_rays
 from scalar_nerfstudio.models.scene_model import ScalarSceneModel, ScalarSceneModelConfig
 from conftest import SMALL_FIELD, ray_bundle
 
@@ -111,7 +111,8 @@ def test_select_rays_reads_the_global_depth_only_for_the_rules_that_need_it() ->
         return torch.full((2, 1), 3.0)  # the surface points (-0.9, 0, 0) and (0.9, 0, 0)
 
     def select(mode: str, block_ids: List[int], per_ray: int, observation=None):
-        return select_rays(parse_fusion_mode(mode), block_ids, origins, directions, centres, radii, observation, per_ray, global_depth)
+        return select_rays(parse_fusion_mode(mode), block_ids, origins=origins, directions=directions,
+                           regions=BlockRegions(centres, radii, observation), blocks_per_ray=per_ray, global_depth=global_depth)
 
     selected, scores = select("nearest", [0, 1, 2], 2)
     assert selected.tolist() == [[True, False], [False, True], [False, False]] and scores is None
@@ -133,12 +134,12 @@ def test_surface_fusion_takes_the_block_holding_the_surface_and_never_a_missing_
                  torch.tensor([[0.9, 0.9, 0.9], [0.7, 0.7, 0.7], [NAN, NAN, NAN]])]
     global_rgb = torch.tensor([[0.5, 0.5, 0.5], [0.4, 0.4, 0.4], [0.3, 0.3, 0.3]])
     scores = torch.tensor([[0.2, 0.1, 0.1], [3.0, 0.9, 0.5]])  # pixel 0 in block 0, pixel 1 nearer block 0's centre
-    fused = fuse_outputs("surface", [{"rgb": v} for v in block_rgb], {"rgb": global_rgb}, None, None,
+    fused = fuse_outputs("surface", [{"rgb": v} for v in block_rgb], {"rgb": global_rgb}, camera_origin=None, block_centres=None,
                          block_scores=scores, blocks_per_ray=1)
     assert torch.allclose(fused["rgb"], torch.tensor([[0.1] * 3, [0.7] * 3, [0.3] * 3]))
     assert fused["block_winner"].tolist() == [0, 1, -1]
     with pytest.raises(ValueError, match="block_scores"):
-        fuse_outputs("surface", [{"rgb": v} for v in block_rgb], {"rgb": global_rgb}, None, None)
+        fuse_outputs("surface", [{"rgb": v} for v in block_rgb], {"rgb": global_rgb}, camera_origin=None, block_centres=None)
 
 
 # ------------------------------------------------------------------------------ the scene model

@@ -47,12 +47,12 @@ def test_castle_split_in_the_training_frame(num_blocks: int) -> None:
     defaults = scalar_nerf.config.pipeline
     shared = {}
     for scale in (1.0, 1.2):
-        split = split_cameras(centres, num_blocks, (scale,) * 3, seed=defaults.split_seed,
+        split = split_cameras(centres, num_blocks, aabb_scale=(scale,) * 3, seed=defaults.split_seed,
                               min_images_per_block=defaults.min_images_per_block, min_overlap_images=defaults.min_overlap_images)
         counts = np.bincount(np.concatenate([b.image_indices for b in split.blocks]), minlength=len(centres))
         assert split.num_blocks == num_blocks and (counts >= 1).all()
         shared[scale] = int((counts > 1).sum())
-        again = split_cameras(centres, num_blocks, (scale,) * 3, seed=defaults.split_seed,
+        again = split_cameras(centres, num_blocks, aabb_scale=(scale,) * 3, seed=defaults.split_seed,
                               min_images_per_block=defaults.min_images_per_block, min_overlap_images=defaults.min_overlap_images)
         assert again == split
     assert shared[1.0] == 0 and shared[1.2] > 0
@@ -259,7 +259,7 @@ def _fake_run(folder: Path, state: Dict[str, torch.Tensor], only_block: Optional
     config.output_dir, config.experiment_name, config.pipeline.only_block = folder.parent, "scene", only_block
     (folder / "nerfstudio_models").mkdir(parents=True)
     centres = np.stack([np.linspace(-1, 1, 8), np.zeros(8), np.zeros(8)], axis=1)
-    save_blocks_json(split_cameras(centres, 2, (1.2, 1.2, 1.2)), folder / "blocks.json", [f"{i}.png" for i in range(8)])
+    save_blocks_json(split_cameras(centres, 2, aabb_scale=(1.2, 1.2, 1.2)), folder / "blocks.json", [f"{i}.png" for i in range(8)])
     config.pipeline.run_plan = (folder / "blocks.json").resolve() if only_block is None else None
     save_run_config(config, folder)
     atomic_torch_save({"step": 27, "pipeline": state}, folder / "nerfstudio_models" / "step-000000027.ckpt")

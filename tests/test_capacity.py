@@ -40,7 +40,7 @@ def _walk(num: int, length: float, seed: int = 0) -> np.ndarray:
 
 def _auto_k(poses: np.ndarray, focal: float, log2_t: int = 19) -> int:
     scale = layout_scale(poses[:, :3, 3], -poses[:, :3, 2], np.full(len(poses), focal))
-    return auto_num_blocks(scale, log2_t, len(poses), min_images_per_block=6, max_blocks=8)
+    return auto_num_blocks(scale, log2_hashmap_size=log2_t, num_images=len(poses), min_images_per_block=6, max_blocks=8)
 
 
 @pytest.mark.parametrize("elevation", [0.0, 30.0, 60.0])
@@ -69,7 +69,7 @@ def test_auto_k_is_bounded_by_images_and_max_blocks() -> None:
     poses = _walk(13, length=500.0)  # R^2 / T is huge; 13 images of at least 6 allow 2 blocks
     assert _auto_k(poses, focal=2000.0) == 2
     scale = layout_scale(poses[:, :3, 3], -poses[:, :3, 2], np.full(13, 2000.0))
-    assert auto_num_blocks(scale, 19, 1000, min_images_per_block=1, max_blocks=3) == 3
+    assert auto_num_blocks(scale, log2_hashmap_size=19, num_images=1000, min_images_per_block=1, max_blocks=3) == 3
 
 
 def test_degenerate_layouts() -> None:
@@ -113,7 +113,8 @@ def test_real_scenes_fox_one_block_castle_several() -> None:
 
     def k(scene: Path, downscale: int) -> int:
         parsed = _parsed(scene, downscale)
-        return auto_num_blocks(parsed_layout_scale(parsed), 19, len(parsed.image_filenames), 6, 8)
+        return auto_num_blocks(parsed_layout_scale(parsed), log2_hashmap_size=19, num_images=len(parsed.image_filenames),
+                               min_images_per_block=6, max_blocks=8)
 
     assert k(FOX, 1) == 1
     assert k(CASTLE, 1) == 4  # nerfstudio's default resolution for castle-P30 (768 x 512)
@@ -132,17 +133,18 @@ def test_real_scenes_fox_one_block_castle_several() -> None:
 )
 def test_block_capacity_respects_bounds(extent: float, pixels: int, low: int, span: int, res_low: int, res_span: int) -> None:
     scale = layout_scale(np.array([[0.0, 0, 0], [10.0, 0, 0]]), np.array([[0.0, 1, 0], [0.0, 1, 0]]), np.array([500.0, 500.0]))
-    capacity = block_capacity(scale, extent, pixels, (low, low + span), (res_low, res_low + res_span))
+    capacity = block_capacity(scale, block_extent=extent, block_pixels=pixels, log2_hashmap_bounds=(low, low + span),
+                              max_resolution_bounds=(res_low, res_low + res_span))
     assert low <= capacity.log2_hashmap_size <= low + span
     assert res_low <= capacity.max_resolution <= res_low + res_span
 
 
 def test_block_capacity_grows_with_extent_and_is_capped_by_pixels() -> None:
     scale = layout_scale(np.array([[0.0, 0, 0], [10.0, 0, 0]]), np.array([[0.0, 1, 0], [0.0, 1, 0]]), np.array([100.0, 100.0]))
-    small = block_capacity(scale, 1.0, 10**9, (10, 24), (16, 8192))
-    large = block_capacity(scale, 8.0, 10**9, (10, 24), (16, 8192))
+    small = block_capacity(scale, block_extent=1.0, block_pixels=10**9, log2_hashmap_bounds=(10, 24), max_resolution_bounds=(16, 8192))
+    large = block_capacity(scale, block_extent=8.0, block_pixels=10**9, log2_hashmap_bounds=(10, 24), max_resolution_bounds=(16, 8192))
     assert large.log2_hashmap_size > small.log2_hashmap_size and large.max_resolution > small.max_resolution
-    few_pixels = block_capacity(scale, 8.0, 5000, (10, 24), (16, 8192))
+    few_pixels = block_capacity(scale, block_extent=8.0, block_pixels=5000, log2_hashmap_bounds=(10, 24), max_resolution_bounds=(16, 8192))
     assert few_pixels.log2_hashmap_size == 13, "a table larger than the observed pixels cannot be filled"
 
 

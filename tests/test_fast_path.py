@@ -25,7 +25,7 @@ def _field(precision: str) -> ScalarField:
 def _outputs_and_decoder_grads(field: ScalarField, points: torch.Tensor, directions: torch.Tensor):
     field.zero_grad()
     density, geo = field.density_at_unit(points)
-    rgb = field.colour(geo, directions, torch.arange(points.shape[0]), torch.zeros(points.shape[0], dtype=torch.long))
+    rgb = field.colour(geo, directions, torch.arange(points.shape[0]), camera_indices=torch.zeros(points.shape[0], dtype=torch.long))
     (density.log1p().sum() + rgb.square().sum()).backward()
     grads = torch.cat([p.grad.reshape(-1) for p in field.decoder.parameters()])
     return density, rgb, grads
@@ -69,11 +69,11 @@ def test_evaluation_without_autograd_runs_the_fused_decoder_and_gives_the_traini
     monkeypatch.setattr(scalar_field, "run_mlp_fused", lambda *args: fused_calls.append(1) or run_fused(*args))
 
     density_grad, geo_grad = field.density_at_unit(points)  # autograd on: nn.Linear as in training
-    rgb_grad = field.colour(geo_grad, directions, torch.arange(5000), camera_indices)
+    rgb_grad = field.colour(geo_grad, directions, torch.arange(5000), camera_indices=camera_indices)
     assert not fused_calls and density_grad.requires_grad
     with torch.no_grad():
         density, geo = field.density_at_unit(points)
-        rgb = field.colour(geo, directions, torch.arange(5000), camera_indices)
+        rgb = field.colour(geo, directions, torch.arange(5000), camera_indices=camera_indices)
     assert len(fused_calls) == 2  # density head and colour head
     assert density.dtype == rgb.dtype == torch.float32
     # the same products in the same precision: only the order of the bias addition may differ
@@ -91,10 +91,10 @@ def test_colour_of_samples_takes_its_direction_and_appearance_from_the_sample_s_
     camera_indices = torch.tensor([0, 1, 2, 0, 1, 2])
     ray_ids = torch.tensor([5, 0, 0, 3, 1, 1, 1, 4, 2])  # samples of 6 rays, in any order
     _, geo = field.density_at_unit(torch.rand(9, 3, generator=generator))
-    per_ray = field.colour(geo, ray_directions, ray_ids, camera_indices)
-    per_sample = field.colour(geo, ray_directions[ray_ids], torch.arange(9), camera_indices[ray_ids])
+    per_ray = field.colour(geo, ray_directions, ray_ids, camera_indices=camera_indices)
+    per_sample = field.colour(geo, ray_directions[ray_ids], torch.arange(9), camera_indices=camera_indices[ray_ids])
     assert torch.allclose(per_ray, per_sample)
-    other_image = field.colour(geo, ray_directions, ray_ids, (camera_indices + 1) % 3)
+    other_image = field.colour(geo, ray_directions, ray_ids, camera_indices=(camera_indices + 1) % 3)
     assert (other_image - per_ray).abs().max() > 1e-4  # the appearance of each ray's image is used
 
 

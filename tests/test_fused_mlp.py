@@ -154,7 +154,7 @@ def test_the_field_trains_through_the_fused_kernels_with_autograd_s_results(monk
     for field in (fused, layered):
         field.train()
         density, geo = field.density_at_unit(points)
-        rgb = field.colour(geo, directions, ray_ids, camera_indices)
+        rgb = field.colour(geo, directions, ray_ids, camera_indices=camera_indices)
         (density.log1p().sum() + rgb.square().sum()).backward()
         grads = {name: p.grad for name, p in field.named_parameters() if p.grad is not None}
         results.append((density, rgb, grads))

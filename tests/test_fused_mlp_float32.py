@@ -204,7 +204,7 @@ def test_the_field_with_the_avx2_kernel_forced_trains_in_float32_with_torch_s_re
     for field in (forced, layered):
         field.train()
         density, geo = field.density_at_unit(points)
-        rgb = field.colour(geo, directions, ray_ids, camera_indices)
+        rgb = field.colour(geo, directions, ray_ids, camera_indices=camera_indices)
         (density.log1p().sum() + rgb.square().sum()).backward()
         results.append((density, rgb, {name: p.grad for name, p in field.named_parameters() if p.grad is not None}))
     assert len(calls) == 2  # density and colour heads of the forced field; none for the layered one

@@ -161,7 +161,7 @@ def test_idw_gamma_effect_and_validity() -> None:
     origin = torch.tensor([2.0, 1.0, 0.0])
     uniform = idw_weights(origin, CENTRES, gamma=0.0)
     assert torch.allclose(uniform, torch.full((3,), 1 / 3))
-    w1, w4 = idw_weights(origin, CENTRES, 1.0), idw_weights(origin, CENTRES, 4.0)
+    w1, w4 = idw_weights(origin, CENTRES, gamma=1.0), idw_weights(origin, CENTRES, gamma=4.0)
     assert w4[0] > w1[0] > uniform[0]
     huge = idw_weights(origin * 1e6, CENTRES * 1e6, gamma=200.0)  # d^-gamma underflows in linear space
     assert torch.isfinite(huge).all() and float(huge.sum()) == pytest.approx(1.0)
@@ -206,26 +206,27 @@ def test_nearest_idw_weights_blend_the_nearest_blocks_by_inverse_distance() -> N
     expected = torch.tensor([d[0] ** -2, d[1] ** -2, 0.0])
     assert torch.allclose(w, expected / expected.sum())
     # one block: the nearest as one-hot weights; every block: plain idw
-    assert nearest_idw_weights(origin, CENTRES, 1).tolist() == [1.0, 0.0, 0.0]
-    assert torch.allclose(nearest_idw_weights(origin, CENTRES, 3, gamma=2.0), idw_weights(origin, CENTRES, 2.0))
-    assert torch.allclose(nearest_idw_weights(origin, CENTRES, 99, gamma=1.0), idw_weights(origin, CENTRES, 1.0))
+    assert nearest_idw_weights(origin, CENTRES, num_nearest=1).tolist() == [1.0, 0.0, 0.0]
+    assert torch.allclose(nearest_idw_weights(origin, CENTRES, num_nearest=3, gamma=2.0), idw_weights(origin, CENTRES, gamma=2.0))
+    assert torch.allclose(nearest_idw_weights(origin, CENTRES, num_nearest=99, gamma=1.0), idw_weights(origin, CENTRES, gamma=1.0))
     # gamma 0: equal shares between the chosen blocks
-    assert torch.allclose(nearest_idw_weights(origin, CENTRES, 2, gamma=0.0), torch.tensor([0.5, 0.5, 0.0]))
+    assert torch.allclose(nearest_idw_weights(origin, CENTRES, num_nearest=2, gamma=0.0), torch.tensor([0.5, 0.5, 0.0]))
 
 
 def test_nearest_blocks_marks_the_nearest_valid_blocks() -> None:
     origins = torch.tensor([[2.0, 1.0, 0.0], [6.0, 6.0, 0.0]])
-    assert nearest_blocks(origins, CENTRES, 2).t().tolist() == [[True, True, False], [False, True, True]]  # tie 1 vs 2 at the second
-    assert nearest_blocks(origins[0], CENTRES, 1).tolist() == [True, False, False]
-    assert nearest_blocks(origins[0], CENTRES, 2, valid=torch.tensor([False, True, True])).tolist() == [False, True, True]
-    assert nearest_blocks(origins, CENTRES, None).all() and nearest_blocks(origins, CENTRES, 9).all()
+    # a tie 1 vs 2 at the second
+    assert nearest_blocks(origins, CENTRES, num_nearest=2).t().tolist() == [[True, True, False], [False, True, True]]
+    assert nearest_blocks(origins[0], CENTRES, num_nearest=1).tolist() == [True, False, False]
+    assert nearest_blocks(origins[0], CENTRES, num_nearest=2, valid=torch.tensor([False, True, True])).tolist() == [False, True, True]
+    assert nearest_blocks(origins, CENTRES, num_nearest=None).all() and nearest_blocks(origins, CENTRES, num_nearest=9).all()
     with pytest.raises(ValueError, match="num_nearest"):
-        nearest_blocks(origins, CENTRES, 0)
+        nearest_blocks(origins, CENTRES, num_nearest=0)
 
 
 def test_nearest_idw_weights_per_ray_validity_ties_and_extremes() -> None:
     origins = torch.tensor([[0.0, 0.0, 0.0], [9.0, 1.0, 0.0], [6.0, 6.0, 0.0]])
-    w = nearest_idw_weights(origins, CENTRES, 2)
+    w = nearest_idw_weights(origins, CENTRES, num_nearest=2)
     assert w.shape == (3, 3) and torch.allclose(w.sum(dim=0), torch.ones(3))
     assert w[0, 0] == 1.0  # a camera at a block's centre takes all the weight
     assert w[2, 1] == 0.0 and w[:, 1].tolist()[2] == 0.0  # second ray: blocks 1 and 0 nearest, block 2 left out
@@ -233,18 +234,18 @@ def test_nearest_idw_weights_per_ray_validity_ties_and_extremes() -> None:
     assert w[0, 2] == 0.0
     # an invalid block is neither chosen nor weighted: the next nearest takes its place
     valid = torch.tensor([[False, True, True], [True, True, True], [True, True, True]])
-    masked = nearest_idw_weights(origins, CENTRES, 2, valid=valid)
+    masked = nearest_idw_weights(origins, CENTRES, num_nearest=2, valid=valid)
     assert masked[0, 0] == 0.0 and (masked[1:, 0] > 0).all() and float(masked[:, 0].sum()) == pytest.approx(1.0)
-    none_valid = nearest_idw_weights(origins[0], CENTRES, 2, valid=torch.zeros(3, dtype=torch.bool))
+    none_valid = nearest_idw_weights(origins[0], CENTRES, num_nearest=2, valid=torch.zeros(3, dtype=torch.bool))
     assert torch.equal(none_valid, torch.zeros(3))
-    far = nearest_idw_weights(torch.tensor([1e30, 0.0, 0.0]), CENTRES, 2, gamma=50.0)  # d^-gamma underflows
+    far = nearest_idw_weights(torch.tensor([1e30, 0.0, 0.0]), CENTRES, num_nearest=2, gamma=50.0)  # d^-gamma underflows
     assert torch.isfinite(far).all() and float(far.sum()) == pytest.approx(1.0)
     with pytest.raises(ValueError, match="num_nearest"):
-        nearest_idw_weights(origins, CENTRES, 0)
+        nearest_idw_weights(origins, CENTRES, num_nearest=0)
     with pytest.raises(ValueError, match="gamma"):
-        nearest_idw_weights(origins, CENTRES, 2, gamma=float("inf"))
+        nearest_idw_weights(origins, CENTRES, num_nearest=2, gamma=float("inf"))
     with pytest.raises(ValueError, match="finite"):
-        nearest_idw_weights(torch.tensor([NAN, 0.0, 0.0]), CENTRES, 2)
+        nearest_idw_weights(torch.tensor([NAN, 0.0, 0.0]), CENTRES, num_nearest=2)
 
 
 def test_fuse_outputs_nearest_idw_blends_two_blocks_and_falls_back() -> None:
@@ -252,20 +253,20 @@ def test_fuse_outputs_nearest_idw_blends_two_blocks_and_falls_back() -> None:
     blocks = [_outputs(gen, (4, 5)) for _ in range(3)]
     glob = _outputs(gen, (4, 5))
     origin = torch.tensor([2.0, 1.0, 0.0])
-    out = fuse_outputs("nearest-idw", blocks, glob, origin, CENTRES, gamma=2.0, blocks_per_ray=2)
-    w = nearest_idw_weights(origin, CENTRES, 2, 2.0)
+    out = fuse_outputs("nearest-idw", blocks, glob, camera_origin=origin, block_centres=CENTRES, gamma=2.0, blocks_per_ray=2)
+    w = nearest_idw_weights(origin, CENTRES, num_nearest=2, gamma=2.0)
     for key in ("rgb", "depth", "accumulation"):
         assert torch.allclose(out[key], w[0] * blocks[0][key] + w[1] * blocks[1][key], atol=1e-6)
     assert (out["block_winner"] == 0).all()
     # the nearest block missing at a pixel (not rendered there): the two nearest that are there
     blocks[0]["rgb"][1, 2] = NAN
-    out = fuse_outputs("nearest-idw", blocks, glob, origin, CENTRES, gamma=2.0, blocks_per_ray=2)
-    w12 = nearest_idw_weights(origin, CENTRES[1:], 2, 2.0)
+    out = fuse_outputs("nearest-idw", blocks, glob, camera_origin=origin, block_centres=CENTRES, gamma=2.0, blocks_per_ray=2)
+    w12 = nearest_idw_weights(origin, CENTRES[1:], num_nearest=2, gamma=2.0)
     assert torch.allclose(out["rgb"][1, 2], w12[0] * blocks[1]["rgb"][1, 2] + w12[1] * blocks[2]["rgb"][1, 2], atol=1e-6)
     # no block at a pixel: the global model's values
     for b in blocks:
         b["rgb"][3, 4] = NAN
-    out = fuse_outputs("nearest-idw", blocks, glob, origin, CENTRES, blocks_per_ray=2)
+    out = fuse_outputs("nearest-idw", blocks, glob, camera_origin=origin, block_centres=CENTRES, blocks_per_ray=2)
     assert torch.equal(out["rgb"][3, 4], glob["rgb"][3, 4]) and out["block_winner"][3, 4] == -1
     assert parse_fusion_mode(" Nearest-IDW ").kind == "nearest-idw" and "nearest-idw" in FUSION_MODES
 
@@ -279,18 +280,21 @@ def test_nearest_guarded_gives_the_global_model_where_the_block_is_transparent_a
     block1 = {"rgb": torch.full((5, 3), 0.8), "depth": torch.full((5, 1), 3.0), "accumulation": torch.full((5, 1), 0.9)}
     glob = {"rgb": torch.full((5, 3), 0.5), "depth": torch.full((5, 1), 2.0),
             "accumulation": torch.tensor([[0.9], [0.9], [0.2], [0.1], [NAN]])}
-    out = fuse_outputs("nearest-guarded", [block0, block1], glob, origin, CENTRES[:2])
+    out = fuse_outputs("nearest-guarded", [block0, block1], glob, camera_origin=origin, block_centres=CENTRES[:2])
     assert out["rgb"][:, 0].tolist() == pytest.approx([0.2, 0.5, 0.2, 0.2, 0.2])
     assert out["depth"][:, 0].tolist() == pytest.approx([1.0, 2.0, 1.0, 1.0, 1.0])  # depth and accumulation follow the colour
     assert out["accumulation"][1, 0] == pytest.approx(0.9)
     assert out["block_winner"].tolist() == [0, -1, 0, 0, 0]
-    assert (fuse_outputs("nearest", [block0, block1], glob, origin, CENTRES[:2])["block_winner"] == 0).all()  # nearest: no guard
-    lenient = fuse_outputs("nearest-guarded", [block0, block1], glob, origin, CENTRES[:2], guard_accumulation=0.05)
+    unguarded = fuse_outputs("nearest", [block0, block1], glob, camera_origin=origin, block_centres=CENTRES[:2])
+    assert (unguarded["block_winner"] == 0).all()  # nearest: no guard
+    lenient = fuse_outputs("nearest-guarded", [block0, block1], glob, camera_origin=origin, block_centres=CENTRES[:2],
+                           guard_accumulation=0.05)
     assert (lenient["block_winner"] == 0).all()  # 0.1 is opaque enough at this threshold
     with pytest.raises(ValueError, match="global model's outputs"):
-        fuse_outputs("nearest-guarded", [block0, block1], None, origin, CENTRES[:2])
+        fuse_outputs("nearest-guarded", [block0, block1], None, camera_origin=origin, block_centres=CENTRES[:2])
     with pytest.raises(ValueError, match="accumulation"):
-        fuse_outputs("nearest-guarded", [{"rgb": block0["rgb"]}, {"rgb": block1["rgb"]}], {"rgb": glob["rgb"]}, origin, CENTRES[:2])
+        fuse_outputs("nearest-guarded", [{"rgb": block0["rgb"]}, {"rgb": block1["rgb"]}], {"rgb": glob["rgb"]}, camera_origin=origin,
+                     block_centres=CENTRES[:2])
 
 
 def test_guard_transparent_on_missing_and_extreme_values() -> None:
@@ -314,7 +318,7 @@ def test_guard_transparent_on_missing_and_extreme_values() -> None:
     assert torch.equal(guard_transparent(weights, blocks[..., None], glob[:, None], threshold=1.0)[:, 5], weights[:, 5])
     for threshold in (0.0, 1.5, NAN):
         with pytest.raises(ValueError, match="threshold"):
-            guard_transparent(weights, blocks, glob, threshold)
+            guard_transparent(weights, blocks, glob, threshold=threshold)
     with pytest.raises(ValueError, match="block_accumulation"):
         guard_transparent(weights, blocks[:1], glob)
     with pytest.raises(ValueError, match="global_accumulation"):
@@ -352,12 +356,12 @@ def test_float32_stays_float32_and_matches_float64_on_extreme_inputs(gamma: floa
     values[0, 5] = NAN
     valid = torch.rand(3, 64, generator=gen) > 0.2
     with _float64_ops() as promoted:
-        weights = idw_weights(origins, centres, gamma, valid)
+        weights = idw_weights(origins, centres, gamma=gamma, valid=valid)
         fused = fuse_weighted(values, weights)
         nearest = nearest_block(origins, centres, valid)
     assert not promoted, f"float64 computed from float32 inputs: {sorted(set(promoted))}"
     assert fused.dtype == torch.float32 and nearest.dtype == torch.int64
-    expected = idw_weights(origins.double(), centres.double(), gamma, valid)
+    expected = idw_weights(origins.double(), centres.double(), gamma=gamma, valid=valid)
     assert weights.dtype == torch.float32 and expected.dtype == torch.float64
     torch.testing.assert_close(weights.double(), expected, rtol=1e-4, atol=1e-6)
     for raw_weights in (weights, torch.rand(3, 64, generator=gen) * 1e-40, torch.rand(3, 64, generator=gen) * 1e37):
@@ -386,7 +390,7 @@ def test_parse_fusion_mode() -> None:
     with pytest.raises(FusionModeError, match="out of range, there are 2 blocks"):
         parse_fusion_mode("block:2", num_blocks=2)
     with pytest.raises(ValueError):  # FusionModeError is a ValueError
-        fuse_outputs("bogus", [], {"rgb": torch.zeros(2, 3)}, None, None)
+        fuse_outputs("bogus", [], {"rgb": torch.zeros(2, 3)}, camera_origin=None, block_centres=None)
 
 
 def _outputs(gen: torch.Generator, shape: tuple[int, ...]) -> dict[str, torch.Tensor]:
@@ -403,7 +407,7 @@ def test_fuse_outputs_global_depth_follows_colour_winner(shape: tuple[int, ...])
     blocks = [_outputs(gen, shape) for _ in range(3)]
     glob = _outputs(gen, shape)
     blocks[2]["rgb"].view(-1, 3)[0] = NAN  # block 2 broken at pixel 0
-    out = fuse_outputs("global", blocks, glob, None, None)
+    out = fuse_outputs("global", blocks, glob, camera_origin=None, block_centres=None)
     assert set(out) == {"rgb", "depth", "accumulation", "block_winner"}
     assert out["rgb"].shape == (*shape, 3) and out["depth"].shape == (*shape, 1)
     assert out["block_winner"].shape == shape and out["block_winner"].dtype == torch.int64
@@ -419,15 +423,15 @@ def test_fuse_outputs_idw_uses_same_weights() -> None:
     gen = torch.Generator().manual_seed(2)
     blocks = [_outputs(gen, (4, 5)) for _ in range(3)]
     origin = torch.tensor([2.0, 1.0, 0.0])
-    out = fuse_outputs("idw", blocks, None, origin, CENTRES, gamma=2.0)
-    w = idw_weights(origin, CENTRES, 2.0)
+    out = fuse_outputs("idw", blocks, None, camera_origin=origin, block_centres=CENTRES, gamma=2.0)
+    w = idw_weights(origin, CENTRES, gamma=2.0)
     for key in ("rgb", "depth", "accumulation"):
         expected = sum(w[k] * blocks[k][key] for k in range(3))
         assert torch.allclose(out[key], expected, atol=1e-6)
     assert (out["block_winner"] == 0).all()
     per_pixel = torch.zeros(4, 5, 3)
     per_pixel[:, 3:] = torch.tensor([10.0, 0.0, 0.0])
-    out = fuse_outputs("idw", blocks, None, per_pixel, CENTRES)
+    out = fuse_outputs("idw", blocks, None, camera_origin=per_pixel, block_centres=CENTRES)
     assert (out["block_winner"][:, :3] == 0).all() and (out["block_winner"][:, 3:] == 1).all()
 
 
@@ -438,7 +442,7 @@ def test_fuse_outputs_idw_nonfinite_block_falls_back() -> None:
     blocks[0]["depth"][1] = INF
     blocks[0]["rgb"][2] = NAN
     blocks[1]["rgb"][2] = NAN
-    out = fuse_outputs("idw", blocks, glob, torch.tensor([1.0, 0.0, 0.0]), CENTRES[:2])
+    out = fuse_outputs("idw", blocks, glob, camera_origin=torch.tensor([1.0, 0.0, 0.0]), block_centres=CENTRES[:2])
     assert out["depth"][1] == blocks[1]["depth"][1]  # only the finite block contributes
     assert torch.equal(out["rgb"][2], glob["rgb"][2])  # no finite block -> global fallback
 
@@ -447,27 +451,27 @@ def test_fuse_outputs_nearest_block_and_global_only() -> None:
     gen = torch.Generator().manual_seed(4)
     blocks = [_outputs(gen, (3, 2)) for _ in range(3)]
     glob = _outputs(gen, (3, 2))
-    out = fuse_outputs("nearest", blocks, glob, torch.tensor([1.0, 9.0, 0.0]), CENTRES)
+    out = fuse_outputs("nearest", blocks, glob, camera_origin=torch.tensor([1.0, 9.0, 0.0]), block_centres=CENTRES)
     assert (out["block_winner"] == 2).all()
     assert all(torch.equal(out[k], blocks[2][k]) for k in ("rgb", "depth", "accumulation"))
-    out = fuse_outputs("block:1", blocks, None, None, None)
+    out = fuse_outputs("block:1", blocks, None, camera_origin=None, block_centres=None)
     assert (out["block_winner"] == 1).all() and torch.equal(out["depth"], blocks[1]["depth"])
-    out = fuse_outputs("global-only", [], glob, None, None)
+    out = fuse_outputs("global-only", [], glob, camera_origin=None, block_centres=None)
     assert (out["block_winner"] == -1).all() and out["block_winner"].shape == (3, 2)
     assert all(torch.equal(out[k], glob[k]) for k in ("rgb", "depth", "accumulation"))
     with pytest.raises(FusionModeError, match="out of range"):
-        fuse_outputs("block:3", blocks, None, None, None)
+        fuse_outputs("block:3", blocks, None, camera_origin=None, block_centres=None)
     with pytest.raises(ValueError, match="needs the global model"):
-        fuse_outputs("global", blocks, None, None, None)
+        fuse_outputs("global", blocks, None, camera_origin=None, block_centres=None)
     with pytest.raises(ValueError, match="needs camera_origin"):
-        fuse_outputs("idw", blocks, glob, None, CENTRES)
+        fuse_outputs("idw", blocks, glob, camera_origin=None, block_centres=CENTRES)
     with pytest.raises(ValueError, match="2 block centres for 3 block outputs"):
-        fuse_outputs("nearest", blocks, glob, torch.zeros(3), CENTRES[:2])
+        fuse_outputs("nearest", blocks, glob, camera_origin=torch.zeros(3), block_centres=CENTRES[:2])
 
 
 def test_fuse_outputs_rgb_only() -> None:
     blocks = [{"rgb": torch.rand(4, 3)} for _ in range(2)]
-    out = fuse_outputs("global", blocks, {"rgb": torch.rand(4, 3), "depth": torch.rand(4, 1)}, None, None)
+    out = fuse_outputs("global", blocks, {"rgb": torch.rand(4, 3), "depth": torch.rand(4, 1)}, camera_origin=None, block_centres=None)
     assert set(out) == {"rgb", "block_winner"}
 
 

@@ -72,7 +72,8 @@ def make_encoding(
     hashed.
     """
     torch.manual_seed(0)
-    return HashGridEncoding(num_levels, features, log2_hashmap_size, 4, max_resolution, init_scale=1.0)
+    return HashGridEncoding(num_levels=num_levels, features_per_level=features, log2_hashmap_size=log2_hashmap_size, base_resolution=4,
+                            max_resolution=max_resolution, init_scale=1.0)
 
 
 def special_points(resolutions: list[int]) -> Tensor:
@@ -94,7 +95,8 @@ def sample_points(resolutions: list[int], num_random: int = 3000) -> Tensor:
 
 
 def reference(enc: HashGridEncoding, positions: Tensor) -> Tensor:
-    return reference_hash_encoding(positions, enc.table, enc.level_offsets, enc.resolutions, enc.hashmap_size)
+    return reference_hash_encoding(positions, enc.table, level_offsets=enc.level_offsets, resolutions=enc.resolutions,
+                                   hashmap_size=enc.hashmap_size)
 
 
 @pytest.mark.parametrize("features", [2, 4])
@@ -130,7 +132,8 @@ def test_an_encoding_computed_without_autograd_gets_the_tables_gradient(implemen
         skip_without_cpp()
     device = torch.device("cuda" if implementation == "cuda" else "cpu")
     torch.manual_seed(0)
-    enc = HashGridEncoding(8, 4, 12, 4, 256, implementation=implementation, init_scale=1.0).to(device)
+    enc = HashGridEncoding(num_levels=8, features_per_level=4, log2_hashmap_size=12, base_resolution=4, max_resolution=256,
+                           implementation=implementation, init_scale=1.0).to(device)
     assert enc.active_implementation == implementation
     positions = sample_points(enc.resolutions).to(device)  # NaN, infinities and points outside [0, 1] included
     upstream = torch.randn(positions.shape[0], enc.get_out_dim(), generator=torch.Generator().manual_seed(3)).to(device)

@@ -76,18 +76,19 @@ def test_a_budget_scales_the_capture_plan_to_fit_its_time() -> None:
 
 def test_blocks_on_workers_get_the_time_of_the_waves() -> None:
     capture = TrainingLength(2000, 1000, "capture")
-    one = length_from_budget(capture, LengthSettings(time_budget_s=600.0), 8, 10.0)
-    four = length_from_budget(capture, LengthSettings(time_budget_s=600.0, block_workers=4), 8, 10.0)
+    one = length_from_budget(capture, LengthSettings(time_budget_s=600.0), num_blocks_trained=8, pace_steps_per_s=10.0)
+    four = length_from_budget(capture, LengthSettings(time_budget_s=600.0, block_workers=4), num_blocks_trained=8, pace_steps_per_s=10.0)
     assert four.global_steps + 2 * four.block_steps == pytest.approx(6000, abs=3)  # 8 blocks on 4 workers: 2 waves
     assert four.block_steps == pytest.approx(2.5 * one.block_steps, rel=0.01)  # the same time over 2 + 2 shares, not 2 + 8
 
 
 def test_a_budget_beside_given_steps_fills_the_rest() -> None:
     capture = TrainingLength(500, 1000, "capture")
-    length = length_from_budget(capture, LengthSettings(global_steps=500, time_budget_s=100.0), 2, 20.0)
+    length = length_from_budget(capture, LengthSettings(global_steps=500, time_budget_s=100.0), num_blocks_trained=2, pace_steps_per_s=20.0)
     assert length.global_steps == 500 and length.block_steps == (2000 - 500) // 2
     with pytest.raises(LengthError, match="not all three"):
-        length_from_budget(capture, LengthSettings(global_steps=500, block_steps=10, time_budget_s=100.0), 2, 20.0)
+        length_from_budget(capture, LengthSettings(global_steps=500, block_steps=10, time_budget_s=100.0), num_blocks_trained=2,
+                           pace_steps_per_s=20.0)
 
 
 def test_a_budget_waits_for_its_pace_and_never_plans_the_past() -> None:
@@ -95,20 +96,24 @@ def test_a_budget_waits_for_its_pace_and_never_plans_the_past() -> None:
     provisional = plan_length(settings, train_pixels=10**6, block_pixels=[10**6])
     assert not provisional.measured and provisional.source == "budget" and provisional.budget_s == 60.0
     assert (provisional.global_steps, provisional.block_steps) == (2000, 1000)  # the capture's plan, for now
-    slow = length_from_budget(provisional, settings, 1, pace_steps_per_s=1.0, steps_done=300)
+    slow = length_from_budget(provisional, settings, num_blocks_trained=1, pace_steps_per_s=1.0, steps_done=300)
     assert slow.global_steps == 301  # 60 steps fit, but 300 are done: the phase keeps them and ends next step
-    blocks_only = length_from_budget(provisional, LengthSettings(global_steps=0, time_budget_s=60.0), 1, 1.0, steps_done=300)
+    blocks_only = length_from_budget(provisional, LengthSettings(global_steps=0, time_budget_s=60.0), num_blocks_trained=1,
+                                     pace_steps_per_s=1.0, steps_done=300)
     assert blocks_only.block_steps == 301 and blocks_only.blocks_measured
 
 
 def test_the_blocks_are_planned_from_the_time_left_and_the_first_blocks_pace() -> None:
     length = TrainingLength(1000, 500, "budget", budget_s=600.0, pace_steps_per_s=5.0, blocks_measured=False)
-    planned = blocks_from_remaining_time(length, LengthSettings(time_budget_s=600.0), 3, remaining_s=300.0, pace_steps_per_s=4.0)
+    planned = blocks_from_remaining_time(length, LengthSettings(time_budget_s=600.0), num_blocks_trained=3, remaining_s=300.0,
+                                         pace_steps_per_s=4.0)
     assert planned.block_steps == 400 and planned.blocks_measured and planned.global_steps == 1000
     # 60 steps of block 0 done, 100 s left at 3 steps/s: 300 more steps for the three blocks' 3B - 60
-    again = blocks_from_remaining_time(planned, LengthSettings(time_budget_s=600.0), 3, 100.0, 3.0, first_block_steps_done=60)
+    again = blocks_from_remaining_time(planned, LengthSettings(time_budget_s=600.0), num_blocks_trained=3, remaining_s=100.0,
+                                       pace_steps_per_s=3.0, first_block_steps_done=60)
     assert again.block_steps == 120
-    spent = blocks_from_remaining_time(planned, LengthSettings(time_budget_s=600.0), 3, -50.0, 3.0, first_block_steps_done=60)
+    spent = blocks_from_remaining_time(planned, LengthSettings(time_budget_s=600.0), num_blocks_trained=3, remaining_s=-50.0,
+                                       pace_steps_per_s=3.0, first_block_steps_done=60)
     assert spent.block_steps == 61  # out of time: block 0 ends at its next step, the others train as long
 
 
@@ -126,8 +131,8 @@ def test_the_plan_file_keeps_the_length(tmp_path: Path) -> None:
     from scalar_nerfstudio.blocks.plan import PlanSettings, load_plan, plan_blocks, save_plan
 
     centres = np.stack([np.linspace(0, 10, 12), np.zeros(12), np.zeros(12)], axis=1)
-    plan = plan_blocks(centres, np.tile([0.0, 1.0, 0.0], (12, 1)), np.full(12, 100.0), [100 * 100] * 12,
-                       [f"{i}.png" for i in range(12)], PlanSettings(num_blocks=2))
+    plan = plan_blocks(centres, np.tile([0.0, 1.0, 0.0], (12, 1)), np.full(12, 100.0), image_pixels=[100 * 100] * 12,
+                       image_names=[f"{i}.png" for i in range(12)], settings=PlanSettings(num_blocks=2))
     from dataclasses import replace
 
     measured = replace(plan, length=TrainingLength(900, 300, "budget", budget_s=120.0, pace_steps_per_s=10.0))

@@ -47,7 +47,7 @@ def test_spacing_round_trip_and_sorted_intervals() -> None:
     t = torch.tensor([0.0, 0.5, 1.0, 2.0, 100.0, 1e4])
     assert torch.allclose(lin_disp_spacing_inverse(lin_disp_spacing(t)), t, rtol=1e-3)
     nears, fars = torch.full((5, 1), 0.05), torch.full((5, 1), 1000.0)
-    starts, ends = sample_intervals(nears, fars, 32, jitter=True)
+    starts, ends = sample_intervals(nears, fars, num_samples=32, jitter=True)
     assert starts.shape == (5, 32)
     assert (ends >= starts).all() and (starts[:, 1:] >= starts[:, :-1]).all()
     assert (starts >= 0.05 - 1e-6).all() and (ends <= 1000.0 + 1e-3).all()
@@ -327,7 +327,7 @@ def test_a_saved_render_grid_loads_where_it_fits_and_is_set_aside_where_it_does_
 
 
 def test_schedule_warms_up_linearly_then_decays_to_a_tenth() -> None:
-    factors = [warmup_exponential_decay_factor(s, 1000, 0.025, 0.1) for s in range(1001)]
+    factors = [warmup_exponential_decay_factor(s, 1000, warmup_fraction=0.025, final_factor=0.1) for s in range(1001)]
     assert factors[0] == pytest.approx(1 / 25) and factors[12] == pytest.approx(12 / 25)
     assert factors[25] == pytest.approx(1.0)
     assert factors[1000] == pytest.approx(0.1)
@@ -336,15 +336,17 @@ def test_schedule_warms_up_linearly_then_decays_to_a_tenth() -> None:
 
 
 def test_schedule_with_a_restart_holds_then_restarts_scaled() -> None:
-    factors = [hold_then_restart_factor(s, 1000, 0.025, 0.1, 0.4, 4.0) for s in range(1001)]
+    factors = [hold_then_restart_factor(s, 1000, warmup_fraction=0.025, final_factor=0.1, restart_fraction=0.4,
+                                        restart_factor=4.0) for s in range(1001)]
     assert factors[0] == pytest.approx(1 / 10) and factors[10] == pytest.approx(1.0)  # warm-up over 2.5 % of 400
     assert factors[10:400] == pytest.approx([1.0] * 390)  # held
     assert factors[400] == pytest.approx(4.0 / 15)  # warms up again over 2.5 % of 600
     assert factors[415] == pytest.approx(4.0) and factors[1000] == pytest.approx(0.4)
     assert all(a >= b for a, b in zip(factors[415:], factors[416:]))
-    plain = [warmup_exponential_decay_factor(s, 1000, 0.025, 0.1) for s in range(1001)]
+    plain = [warmup_exponential_decay_factor(s, 1000, warmup_fraction=0.025, final_factor=0.1) for s in range(1001)]
     for no_restart in (0.0, 0.0001, 1.0):
-        assert [hold_then_restart_factor(s, 1000, 0.025, 0.1, no_restart, 4.0) for s in range(1001)] == plain
+        assert [hold_then_restart_factor(s, 1000, warmup_fraction=0.025, final_factor=0.1, restart_fraction=no_restart,
+                                         restart_factor=4.0) for s in range(1001)] == plain
 
 
 def _model_with_opaque_ball(reset_near_plane: bool) -> ScalarModel:

@@ -5,6 +5,7 @@ it; on a forward-facing street the block that sees a point is never dropped."""
 from __future__ import annotations
 
 import math
+from typing import Dict
 
 import torch
 
@@ -29,16 +30,16 @@ def _looking_along(direction, position) -> torch.Tensor:
     return torch.cat([torch.stack([right, up, -forward], dim=1), torch.tensor(position, dtype=torch.float32)[:, None]], dim=1)
 
 
-def _intrinsics(n: int):
+def _intrinsics(n: int) -> Dict[str, torch.Tensor]:
     full = lambda value: torch.full((n,), float(value))  # noqa: E731
-    return full(FOCAL), full(FOCAL), full(SIZE / 2), full(SIZE / 2), full(SIZE), full(SIZE)
+    return {"fx": full(FOCAL), "fy": full(FOCAL), "cx": full(SIZE / 2), "cy": full(SIZE / 2), "width": full(SIZE), "height": full(SIZE)}
 
 
 def test_a_point_is_seen_in_front_of_a_camera_inside_its_image_only() -> None:
     pose = _looking_along((1.0, 0.0, 0.0), (0.0, 0.0, 0.0))[None]
     points = torch.tensor([[0.5, 0.0, 0.0], [-0.5, 0.0, 0.0], [0.5, 0.4, 0.0], [0.5, 0.6, 0.0], [0.5, 0.0, -0.45]])
     # in front; behind; inside the 90-degree cone; outside it; inside vertically
-    assert seen_by_any(points, pose, *_intrinsics(1)).tolist() == [True, False, True, False, True]
+    assert seen_by_any(points, pose, **_intrinsics(1)).tolist() == [True, False, True, False, True]
 
 
 def test_grid_cells_are_indexed_consistently_with_their_centres() -> None:
@@ -57,7 +58,7 @@ def test_on_an_inward_ring_the_wall_goes_to_the_block_that_sees_it_not_the_neare
     x = +0.95 is nearest block 1's camera box, but only block 0's cameras see it."""
     poses = torch.stack([_looking_along((1.0, 0.0, 0.0), (-0.8, y, 0.0)) for y in (-0.1, 0.1)]
                         + [_looking_along((-1.0, 0.0, 0.0), (0.8, y, 0.0)) for y in (-0.1, 0.1)])
-    observation = block_observation(poses, *_intrinsics(4), block_images=[(0, 1), (2, 3)])
+    observation = block_observation(poses, **_intrinsics(4), block_images=[(0, 1), (2, 3)])
     wall = torch.tensor([[0.95, 0.0, 0.0], [-0.95, 0.05, 0.1]])
     usable = observed_at(observation, wall)
     assert usable.tolist() == [[True, False], [False, True]]
@@ -73,11 +74,11 @@ def test_on_a_forward_facing_street_a_block_is_never_denied_what_its_cameras_see
     facade point a block's cameras see is observed by that block."""
     poses = torch.stack([_looking_along((1.0, 0.0, 0.0), (0.0, y, 0.0)) for y in torch.linspace(-0.8, 0.8, 8).tolist()])
     blocks = [tuple(range(4)), tuple(range(4, 8))]
-    observation = block_observation(poses, *_intrinsics(8), block_images=blocks)
+    observation = block_observation(poses, **_intrinsics(8), block_images=blocks)
     generator = torch.Generator().manual_seed(0)
     facade = torch.cat([torch.full((400, 1), 0.6), torch.rand(400, 2, generator=generator) * 1.6 - 0.8], dim=1)
     for index, images in enumerate(blocks):
         index_tensor = torch.tensor(images)
-        seen = seen_by_any(facade, poses[index_tensor], *[t[index_tensor] for t in _intrinsics(8)])
+        seen = seen_by_any(facade, poses[index_tensor], **{k: t[index_tensor] for k, t in _intrinsics(8).items()})
         assert seen.any()
         assert observed_at(observation, facade)[index][seen].all()

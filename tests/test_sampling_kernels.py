@@ -59,8 +59,9 @@ def test_the_kernel_places_samples_in_the_unit_cube_as_the_torch_code_does(
 ) -> None:
     origins, directions, t = extreme_rays()
     centre_tensor = torch.tensor(centre)
-    kernel = contract_rays_to_unit_cube(origins, directions, t, centre_tensor, radius)
-    reference = with_torch_code(monkeypatch, lambda: contract_rays_to_unit_cube(origins, directions, t, centre_tensor, radius))
+    kernel = contract_rays_to_unit_cube(origins, directions, t, centre=centre_tensor, radius=radius)
+    reference = with_torch_code(monkeypatch, lambda: contract_rays_to_unit_cube(origins, directions, t, centre=centre_tensor,
+                                                                                radius=radius))
     assert kernel.shape == (t.numel(), 3) and kernel.dtype == torch.float32
     assert torch.isfinite(kernel).all() and (kernel >= 0).all() and (kernel <= 1).all()
     torch.testing.assert_close(kernel, reference, atol=1e-6, rtol=0)
@@ -70,7 +71,7 @@ def test_the_kernel_rejects_samples_that_do_not_match_their_rays() -> None:
     origins, directions, t = extreme_rays()
     # the message names the sizes (built without iostreams: csrc/check.h)
     with pytest.raises(RuntimeError, match="t must be \\[R, S\\] with R = 64, got \\[63, 16\\]"):
-        contract_rays_to_unit_cube(origins, directions, t[:-1], torch.zeros(3), 1.0)
+        contract_rays_to_unit_cube(origins, directions, t[:-1], centre=torch.zeros(3), radius=1.0)
 
 
 @pytest.mark.parametrize("neighbourhood_alpha_test", [True, False])

@@ -128,7 +128,7 @@ def make_governor(machine: FakeMachine, fake: FakeTorch, logs: List[str], enviro
                           environ={} if environ is None else environ, **options)  # type: ignore[arg-type]
 
 
-def run_steps(governor: ThreadGovernor, machine: FakeMachine, fake: FakeTorch, start: float, seconds: float,
+def run_steps(governor: ThreadGovernor, machine: FakeMachine, fake: FakeTorch, *, start: float, seconds: float,
               step_s: float, other_cores: float) -> float:
     """Steps of ``step_s`` for ``seconds``; we use our thread count's cores as far as the others leave them."""
     now = start
@@ -158,15 +158,15 @@ def test_governor_samples_only_when_due() -> None:
 def test_governor_drops_then_restores_threads() -> None:
     machine, fake, logs = FakeMachine(), FakeTorch(2), []
     governor = make_governor(machine, fake, logs, every_seconds=5.0, confirmations=2)
-    now = run_steps(governor, machine, fake, 0.0, 30.0, 0.1, other_cores=0.0)  # alone
+    now = run_steps(governor, machine, fake, start=0.0, seconds=30.0, step_s=0.1, other_cores=0.0)  # alone
     assert fake.calls == []
-    now = run_steps(governor, machine, fake, now, 30.0, 0.1, other_cores=1.0)  # another training starts
+    now = run_steps(governor, machine, fake, start=now, seconds=30.0, step_s=0.1, other_cores=1.0)  # another training starts
     assert fake.calls == [1]
     assert logs == ["threads: 2 -> 1 (other processes use 1.0 of 2 cores)"]
     assert governor.last_other_cores == pytest.approx(1.0)
-    now = run_steps(governor, machine, fake, now, 60.0, 0.1, other_cores=1.0)  # it keeps running: no change
+    now = run_steps(governor, machine, fake, start=now, seconds=60.0, step_s=0.1, other_cores=1.0)  # it keeps running: no change
     assert fake.calls == [1]
-    run_steps(governor, machine, fake, now, 30.0, 0.1, other_cores=0.0)  # it ended
+    run_steps(governor, machine, fake, start=now, seconds=30.0, step_s=0.1, other_cores=0.0)  # it ended
     assert fake.calls == [1, 2]  # set only on change
     assert logs[-1] == "threads: 1 -> 2 (other processes use 0.0 of 2 cores)"
 
@@ -203,14 +203,14 @@ def test_governor_does_not_flap_under_a_wandering_load() -> None:
 def test_governor_never_exceeds_torch_default_or_cores() -> None:
     machine, fake, logs = FakeMachine(cores=8), FakeTorch(4), []
     governor = make_governor(machine, fake, logs, confirmations=1)
-    run_steps(governor, machine, fake, 0.0, 60.0, 0.5, other_cores=0.0)
+    run_steps(governor, machine, fake, start=0.0, seconds=60.0, step_s=0.5, other_cores=0.0)
     assert fake.calls == []  # idle machine, 4 of 8: a lone run keeps torch's default
     fake.threads = 16
     governor = make_governor(machine, fake, logs, confirmations=1)
-    run_steps(governor, machine, fake, 0.0, 12.0, 0.5, other_cores=0.0)
+    run_steps(governor, machine, fake, start=0.0, seconds=12.0, step_s=0.5, other_cores=0.0)
     assert fake.calls == [8]  # not more threads than cores
     governor = make_governor(machine, fake, logs, confirmations=1, max_threads=3)
-    run_steps(governor, machine, fake, 0.0, 12.0, 0.5, other_cores=0.0)
+    run_steps(governor, machine, fake, start=0.0, seconds=12.0, step_s=0.5, other_cores=0.0)
     assert fake.calls == [8, 3]
 
 
@@ -218,10 +218,10 @@ def test_governor_respects_explicit_thread_count() -> None:
     machine, fake, logs = FakeMachine(), FakeTorch(2), []
     governor = make_governor(machine, fake, logs, environ={"OMP_NUM_THREADS": "2"}, confirmations=1)
     assert not governor.enabled
-    run_steps(governor, machine, fake, 0.0, 30.0, 0.1, other_cores=1.5)
+    run_steps(governor, machine, fake, start=0.0, seconds=30.0, step_s=0.1, other_cores=1.5)
     assert machine.reads == 0 and fake.calls == []
     governor = make_governor(machine, fake, logs, enabled=False, confirmations=1)
-    run_steps(governor, machine, fake, 0.0, 30.0, 0.1, other_cores=1.5)
+    run_steps(governor, machine, fake, start=0.0, seconds=30.0, step_s=0.1, other_cores=1.5)
     assert machine.reads == 0 and fake.calls == []
     governor = make_governor(machine, fake, logs, environ={"OMP_NUM_THREADS": ""}, confirmations=1)
     assert governor.enabled  # set but empty is no choice

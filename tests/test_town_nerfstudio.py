@@ -202,7 +202,7 @@ def test_default_town_gets_more_than_one_automatic_block() -> None:
     poses = town_camera_poses(build_town(config))
     train = poses[np.arange(len(poses)) % 8 != 0]
     scale = layout_scale(train[:, :3, 3], -train[:, :3, 2], np.full(len(train), config.focal_px))
-    assert auto_num_blocks(scale, 19, len(train), 6, 8) > 1
+    assert auto_num_blocks(scale, log2_hashmap_size=19, num_images=len(train), min_images_per_block=6, max_blocks=8) > 1
 
 
 def test_check_scene_accepts_the_town(tiny_scene: Path) -> None:

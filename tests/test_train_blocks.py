@@ -68,7 +68,7 @@ def fake_global_run(scene: Path, tmp_path: Path) -> Path:
     (run / "config.yml").write_text(yaml.dump(config))
     names = [f"images/frame_{i:05d}.png" for i in range(12)]
     centres = np.stack([np.linspace(-1, 1, 12), np.zeros(12), np.zeros(12)], axis=1)
-    save_blocks_json(split_cameras(centres, 2, (1.2, 1.2, 1.2)), run / "blocks.json", names)
+    save_blocks_json(split_cameras(centres, 2, aabb_scale=(1.2, 1.2, 1.2)), run / "blocks.json", names)
     (run / "nerfstudio_models" / f"step-{config.pipeline.global_steps - 1:09d}.ckpt").touch()
     return run
 
@@ -112,11 +112,11 @@ def test_threads_and_pool_size_do_not_oversubscribe() -> None:
     assert LocalExecutor(2, 2, 0).slots == 1
     assert LocalExecutor(8, 3, 0).slots == 2
     run = GlobalRun(Path("/runs/g"), 2, Path("/runs/g/nerfstudio_models/step-000000039.ckpt"), 15)
-    command = block_command(run, 1, Path("/o/block1/attempt-3"), 0, None, ["--steps-per-save", "4"])
+    command = block_command(run, 1, attempt_dir=Path("/o/block1/attempt-3"), gpus=0, block_steps=None, extra=["--steps-per-save", "4"])
     assert command[:5] == ["scalar-nerf-block", "--global-run", "/runs/g", "--block", "1"]
     assert command[command.index("--pipeline.block-steps") + 1] == "15" and command[command.index("--max-num-iterations") + 1] == "15"
     assert "--machine.device-type" in command and command[-2:] == ["--steps-per-save", "4"]
-    command = block_command(run, 1, Path("/o"), 1, 6, [])
+    command = block_command(run, 1, attempt_dir=Path("/o"), gpus=1, block_steps=6, extra=[])
     assert command[command.index("--pipeline.block-steps") + 1] == "6" and "--machine.device-type" not in command
 
 
@@ -176,7 +176,7 @@ def test_skip_done_set_aside_leftovers_and_stale(tmp_path: Path, capsys) -> None
     done_run.mkdir(parents=True)
     (done_run / "config.yml").touch()
     (tmp_path / "block0" / "failed-attempt-1").mkdir()
-    write_done(tmp_path / "block0", done_run, 2, 12.0, checkpoint)
+    write_done(tmp_path / "block0", done_run, attempt=2, seconds=12.0, global_checkpoint=checkpoint)
     (tmp_path / "block1" / "attempt-1").mkdir(parents=True)  # left by a killed command
     states = prepare_blocks(tmp_path, [0, 1], checkpoint)
     assert states[0].status.startswith("skipped") and states[0].run == done_run

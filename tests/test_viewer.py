@@ -72,7 +72,7 @@ def test_block_overlay_keeps_its_scene_nodes_to_hide_restyle_and_remove() -> Non
     from nerfstudio.viewer.viewer import VISER_NERFSTUDIO_SCALE_RATIO
 
     centres = np.stack([np.linspace(-1, 1, 8), np.zeros(8), np.zeros(8)], axis=1)
-    overlay = BlockOverlay(split_cameras(centres, 2, (1.2, 1.2, 1.2)), centres)
+    overlay = BlockOverlay(split_cameras(centres, 2, aabb_scale=(1.2, 1.2, 1.2)), centres)
     assert overlay.handles == []
     overlay.set_visible(False)  # before the viewer runs: remembered for the drawing
     viewer = _FakeViewer()

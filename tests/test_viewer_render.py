@@ -115,7 +115,7 @@ def _no_nerfstudio_event_writer(monkeypatch: pytest.MonkeyPatch) -> None:
 
 def _machine(model: _FakeModel, speed: RenderSpeed, budget_s: float) -> Tuple[ProgressiveRenderStateMachine, _FakeClient]:
     client = _FakeClient()
-    machine = ProgressiveRenderStateMachine(_FakeViewer(model), 1.0, client, speed)
+    machine = ProgressiveRenderStateMachine(_FakeViewer(model), 1.0, client, speed=speed)
     machine.coarse_budget_s = budget_s
     return machine, client
 

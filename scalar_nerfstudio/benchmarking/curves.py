@@ -98,7 +98,7 @@ def _train(spec: Dict[str, Any], runs: Path, resume: bool, progress, task) -> Di
     spec_path.write_text(json.dumps(spec, indent=2))
     runner_path = runs / f"{spec['name']}.runner.json"
     runner_path.write_text(json.dumps(runner_spec, indent=2))
-    run_runner(runner_path, runs / f"{spec['name']}.log", spec["name"], progress, task, append=True)
+    run_runner(runner_path, runs / f"{spec['name']}.log", what=spec["name"], progress=progress, task=task, append=True)
     result = json.loads(Path(spec["result"]).read_text())
     os.utime(spec["result"])  # newer than its spec: --resume reads it back
     return result

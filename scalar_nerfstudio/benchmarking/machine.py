@@ -19,7 +19,7 @@ from scalar_nerfstudio.encodings import HashGridEncoding
 from scalar_nerfstudio.engine.timing import median_seconds
 
 
-def fwd_bwd_seconds(module: nn.Module, positions: Tensor, upstream: Tensor, warmup: int, repeats: int) -> float:
+def fwd_bwd_seconds(module: nn.Module, positions: Tensor, upstream: Tensor, *, warmup: int, repeats: int) -> float:
     """Median seconds of one ``module(positions)`` forward + backward of ``upstream`` (its parameters'
     gradients are reset before each call; on CUDA each call waits for its kernels to finish).
 
@@ -44,6 +44,7 @@ def fwd_bwd_seconds(module: nn.Module, positions: Tensor, upstream: Tensor, warm
 
 
 def hash_grid_speed(
+    *,
     num_points: int = 1 << 18,
     features: int = 4,
     log2_hashmap_size: int = 19,
@@ -69,7 +70,8 @@ def hash_grid_speed(
     if num_points < 1 or repeats < 1 or warmup < 0:
         raise ValueError(f"hash_grid_speed: need num_points >= 1, repeats >= 1, warmup >= 0, got {num_points}, {repeats}, {warmup}")
     generator = torch.Generator().manual_seed(seed)
-    encoder = HashGridEncoding(16, features, log2_hashmap_size, 16, 2048)
+    encoder = HashGridEncoding(num_levels=16, features_per_level=features, log2_hashmap_size=log2_hashmap_size, base_resolution=16,
+                               max_resolution=2048)
     positions = torch.rand(num_points, 3, generator=generator)
     upstream = torch.randn(num_points, encoder.get_out_dim(), generator=generator)
     previous = torch.get_num_threads()

@@ -238,7 +238,7 @@ def decoder_width_used(config: BenchmarkConfig) -> int:
     return config.decoder_width if config.decoder_width is not None else ScalarFieldConfig.hidden_dim
 
 
-def markdown(config: BenchmarkConfig, table: List[Dict[str, Any]], notes: Dict[str, str], command: str, machine: str,
+def markdown(config: BenchmarkConfig, table: List[Dict[str, Any]], *, notes: Dict[str, str], command: str, machine: str,
              results: Optional[Dict[str, Dict[str, Any]]] = None, decoder_width: Optional[int] = None, seed: Optional[int] = None,
              heldout_view: Optional[Dict[str, Any]] = None) -> str:
     """results.md; ``decoder_width``: the width the run's variants trained with (None: a report written
@@ -291,7 +291,7 @@ def markdown(config: BenchmarkConfig, table: List[Dict[str, Any]], notes: Dict[s
     return "\n".join(lines)
 
 
-def plots(results: Dict[str, Dict[str, Any]], table: List[Dict[str, Any]], output_dir: Path, log2_table: int = 19) -> List[Path]:
+def plots(results: Dict[str, Dict[str, Any]], table: List[Dict[str, Any]], output_dir: Path, *, log2_table: int = 19) -> List[Path]:
     """PSNR vs training time (curves), vs render time and vs parameters (points): three PNGs."""
     import matplotlib
 
@@ -353,14 +353,15 @@ def describe_machine() -> str:
 def _write(output_dir: Path, config: BenchmarkConfig, report: Dict[str, Any]) -> None:
     """results.json, results.md and the plots of ``report``."""
     atomic_write_text(output_dir / "results.json", json.dumps(report, indent=2))
-    atomic_write_text(output_dir / "results.md", markdown(config, report["rows"], report["notes"], report["command"], report["machine"],
-                                                          report["results"], report.get("decoder_width"), report["config"].get("seed"),
-                                                          report.get("heldout_view")))
-    plots(report["results"], report["rows"], output_dir, config.log2_table)
+    atomic_write_text(output_dir / "results.md", markdown(
+        config, report["rows"], notes=report["notes"], command=report["command"], machine=report["machine"], results=report["results"],
+        decoder_width=report.get("decoder_width"), seed=report["config"].get("seed"), heldout_view=report.get("heldout_view"),
+    ))
+    plots(report["results"], report["rows"], output_dir, log2_table=config.log2_table)
 
 
 def write_report(
-    config: BenchmarkConfig, results: Dict[str, Dict[str, Any]], notes: Dict[str, str], command: str, started: float,
+    config: BenchmarkConfig, results: Dict[str, Dict[str, Any]], *, notes: Dict[str, str], command: str, started: float,
     machine_probe: Optional[Dict[str, float]] = None, heldout_view: Optional[Dict[str, Any]] = None,
 ) -> Dict[str, Any]:
     """The report of a benchmark run (``started``: ``time.time()`` when its variants started), written

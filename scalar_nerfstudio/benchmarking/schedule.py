@@ -59,7 +59,7 @@ def prepare(config: BenchmarkConfig) -> Tuple[List[Variant], Dict[str, str]]:
     return variants, notes
 
 
-def variant_spec(config: BenchmarkConfig, variant: Variant, runs: Path, results: Dict[str, Dict[str, Any]]) -> Dict[str, Any]:
+def variant_spec(config: BenchmarkConfig, variant: Variant, *, runs: Path, results: Dict[str, Dict[str, Any]]) -> Dict[str, Any]:
     """The SPEC the runner trains ``variant`` from (``results``: the variants run so far)."""
     overrides = {"machine.seed": config.seed, **variant.overrides}
     if variant.base is not None:
@@ -75,22 +75,26 @@ def variant_spec(config: BenchmarkConfig, variant: Variant, runs: Path, results:
     }
 
 
-def run_variant(config: BenchmarkConfig, variant: Variant, runs: Path, results: Dict[str, Dict[str, Any]], progress, task) -> Dict[str, Any]:
+def run_variant(
+    config: BenchmarkConfig, variant: Variant, *, runs: Path, results: Dict[str, Dict[str, Any]], progress, task,
+) -> Dict[str, Any]:
     """Train one variant in a subprocess (progress bar from its PROGRESS lines); its result dict. With
     ``config.resume``, a finished run of the same spec in ``runs`` is read instead (:func:`finished_run`),
     also one recorded under the variant's former name (:func:`finished_run_of_former_name`)."""
-    spec = variant_spec(config, variant, runs, results)
+    spec = variant_spec(config, variant, runs=runs, results=results)
     spec_path = runs / f"{variant.name}.spec.json"
-    result = (finished_run(spec, spec_path) or finished_run_of_former_name(config, variant, runs, results)) if config.resume else None
+    result = ((finished_run(spec, spec_path) or finished_run_of_former_name(config, variant, runs=runs, results=results))
+              if config.resume else None)
     if result is not None:
         progress.console.print(f"{variant.name}: reusing its finished run ({spec['result']})")
         return _completed(variant, {**result, "reused": True}, results)
     spec_path.write_text(json.dumps(spec, indent=2))
-    run_runner(spec_path, runs / f"{variant.name}.log", f"variant {variant.name}", progress, task, verbose=config.verbose)
+    run_runner(spec_path, runs / f"{variant.name}.log", what=f"variant {variant.name}", progress=progress, task=task,
+               verbose=config.verbose)
     return _completed(variant, json.loads(Path(spec["result"]).read_text()), results)
 
 
-def run_runner(spec_path: Path, log_path: Path, what: str, progress, task, *, verbose: bool = False, append: bool = False) -> None:
+def run_runner(spec_path: Path, log_path: Path, *, what: str, progress, task, verbose: bool = False, append: bool = False) -> None:
     """Run ``python -m RUNNER_MODULE spec_path``, its output to ``log_path`` (``append``: after what is there),
     its ``PROGRESS`` lines driving ``task``; a failure ends the benchmark with ``what``, its exit code and its log's tail."""
     command = [sys.executable, "-m", RUNNER_MODULE, str(spec_path)]
@@ -130,7 +134,8 @@ def finished_run(spec: Dict[str, Any], spec_path: Path) -> Optional[Dict[str, An
     return result
 
 
-def finished_run_of_former_name(config: BenchmarkConfig, variant: Variant, runs: Path, results: Dict[str, Dict[str, Any]]) -> Optional[Dict[str, Any]]:
+def finished_run_of_former_name(config: BenchmarkConfig, variant: Variant, *, runs: Path,
+                                results: Dict[str, Dict[str, Any]]) -> Optional[Dict[str, Any]]:
     """The result of a finished run of ``variant`` that an earlier benchmark recorded in ``runs`` under the
     variant's former name (``ngp19.spec.json`` for ``ngp-t``; :func:`.variants.former_variant_name`), with
     the spec that name gives otherwise the same; renamed to ``variant.name``. None when there is none."""
@@ -138,7 +143,7 @@ def finished_run_of_former_name(config: BenchmarkConfig, variant: Variant, runs:
     if former is None:
         return None
     as_before = dataclasses.replace(variant, name=former)
-    result = finished_run(variant_spec(config, as_before, runs, results), runs / f"{former}.spec.json")
+    result = finished_run(variant_spec(config, as_before, runs=runs, results=results), runs / f"{former}.spec.json")
     return None if result is None else {**result, "name": variant.name}
 
 
@@ -196,7 +201,7 @@ def run_variants(config: BenchmarkConfig, variants: List[Variant], notes: Option
 
         def train(variant: Variant, task) -> Dict[str, Any]:
             progress.start_task(task)
-            result = run_variant(config, variant, runs, results, progress, task)
+            result = run_variant(config, variant, runs=runs, results=results, progress=progress, task=task)
             progress.update(task, completed=progress.tasks[task].total)
             return result
 

@@ -132,7 +132,7 @@ def layout_scale(centres: np.ndarray, directions: np.ndarray, focal_px: np.ndarr
     return LayoutScale(extent=extent, viewing_distance=max(distance, 1e-6 * extent), focal_px=float(np.median(focal)), converged=converged)
 
 
-def auto_num_blocks(scale: LayoutScale, log2_hashmap_size: int, num_images: int, min_images_per_block: int, max_blocks: int) -> int:
+def auto_num_blocks(scale: LayoutScale, *, log2_hashmap_size: int, num_images: int, min_images_per_block: int, max_blocks: int) -> int:
     """``ceil(R^2 / T)`` blocks for a layout ``R`` pixels across and tables of ``T`` rows, within
     ``[1, min(max_blocks, num_images // min_images_per_block)]``."""
     if min_images_per_block < 1 or max_blocks < 1:
@@ -144,6 +144,7 @@ def auto_num_blocks(scale: LayoutScale, log2_hashmap_size: int, num_images: int,
 
 def block_capacity(
     scale: LayoutScale,
+    *,
     block_extent: float,
     block_pixels: int,
     log2_hashmap_bounds: Tuple[int, int],

@@ -158,7 +158,7 @@ def _waves(num_blocks_trained: int, workers: int) -> int:
 
 
 def length_from_budget(
-    capture: TrainingLength, settings: LengthSettings, num_blocks_trained: int, pace_steps_per_s: Optional[float],
+    capture: TrainingLength, settings: LengthSettings, *, num_blocks_trained: int, pace_steps_per_s: Optional[float],
     steps_done: int = 0,
 ) -> TrainingLength:
     """A budget's plan: ``capture``'s steps scaled to fit ``settings.time_budget_s`` at ``pace_steps_per_s``.
@@ -204,7 +204,7 @@ def length_from_budget(
 
 
 def blocks_from_remaining_time(
-    length: TrainingLength, settings: LengthSettings, num_blocks_trained: int, remaining_s: float, pace_steps_per_s: float,
+    length: TrainingLength, settings: LengthSettings, *, num_blocks_trained: int, remaining_s: float, pace_steps_per_s: float,
     first_block_steps_done: int = 0,
 ) -> TrainingLength:
     """A budget's plan once its global phase has ended: the blocks' steps from the time left.
@@ -223,13 +223,13 @@ def blocks_from_remaining_time(
 
 
 def plan_length(
-    settings: LengthSettings, train_pixels: int, block_pixels: Sequence[int], pace_steps_per_s: Optional[float] = None,
+    settings: LengthSettings, *, train_pixels: int, block_pixels: Sequence[int], pace_steps_per_s: Optional[float] = None,
 ) -> TrainingLength:
     """The run's length: the capture's plan, or with a budget that plan scaled to the budget."""
     capture = length_from_capture(settings, train_pixels, block_pixels)
     if settings.time_budget_s is None:
         return capture
-    return length_from_budget(capture, settings, len(block_pixels), pace_steps_per_s)
+    return length_from_budget(capture, settings, num_blocks_trained=len(block_pixels), pace_steps_per_s=pace_steps_per_s)
 
 
 def length_to_json(length: TrainingLength) -> Dict[str, Any]:

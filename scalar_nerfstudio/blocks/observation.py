@@ -36,7 +36,7 @@ def grid_cell_indices(points: Tensor, resolution: int) -> Tensor:
     return flat_cell_indices(contract_to_unit_cube(points.float()), resolution)
 
 
-def seen_by_any(points: Tensor, camera_to_worlds: Tensor, fx: Tensor, fy: Tensor, cx: Tensor, cy: Tensor,
+def seen_by_any(points: Tensor, camera_to_worlds: Tensor, *, fx: Tensor, fy: Tensor, cx: Tensor, cy: Tensor,
                 width: Tensor, height: Tensor) -> Tensor:
     """[P] bool: the point [P, 3] projects inside at least one of the N images, in front of its camera.
 
@@ -61,7 +61,7 @@ def seen_by_any(points: Tensor, camera_to_worlds: Tensor, fx: Tensor, fy: Tensor
     return seen
 
 
-def block_observation(camera_to_worlds: Tensor, fx: Tensor, fy: Tensor, cx: Tensor, cy: Tensor, width: Tensor, height: Tensor,
+def block_observation(camera_to_worlds: Tensor, *, fx: Tensor, fy: Tensor, cx: Tensor, cy: Tensor, width: Tensor, height: Tensor,
                       block_images: Sequence[Sequence[int]], resolution: int = OBSERVATION_RESOLUTION) -> Tensor:
     """[K, G^3] bool: the cells each block's training images observe, dilated by one cell.
 
@@ -73,7 +73,8 @@ def block_observation(camera_to_worlds: Tensor, fx: Tensor, fy: Tensor, cx: Tens
     observed = []
     for images in block_images:
         index = torch.as_tensor(list(images), dtype=torch.long, device=camera_to_worlds.device)
-        seen = seen_by_any(centres, camera_to_worlds[index], fx[index], fy[index], cx[index], cy[index], width[index], height[index])
+        seen = seen_by_any(centres, camera_to_worlds[index], fx=fx[index], fy=fy[index], cx=cx[index], cy=cy[index], width=width[index],
+                           height=height[index])
         grid = seen.reshape(1, 1, resolution, resolution, resolution).float()
         dilated = torch.nn.functional.max_pool3d(grid, kernel_size=3, stride=1, padding=1) > 0
         observed.append(dilated.reshape(-1))

@@ -95,6 +95,7 @@ def plan_blocks(
     centres: np.ndarray,
     directions: np.ndarray,
     focal_px: np.ndarray,
+    *,
     image_pixels: Sequence[int],
     image_names: Sequence[str],
     settings: PlanSettings,
@@ -119,7 +120,8 @@ def plan_blocks(
     if given_split is None:
         num_blocks = settings.num_blocks
         if num_blocks is None and settings.only_block is None:
-            auto = auto_num_blocks(layout, settings.log2_hashmap_size, len(centres), settings.auto_min_images_per_block, settings.max_auto_blocks)
+            auto = auto_num_blocks(layout, log2_hashmap_size=settings.log2_hashmap_size, num_images=len(centres),
+                                   min_images_per_block=settings.auto_min_images_per_block, max_blocks=settings.max_auto_blocks)
             num_blocks = auto
         split = split_cameras(
             centres, num_blocks if num_blocks is not None else 1, aabb_scale=settings.aabb_scale, seed=settings.split_seed,
@@ -136,8 +138,8 @@ def plan_blocks(
         block = split.blocks[index]
         extent = max(hi - lo for lo, hi in zip(block.aabb_min, block.aabb_max))
         chosen = block_capacity(
-            layout, extent, int(sum(image_pixels[i] for i in block.image_indices)),
-            settings.block_log2_hashmap_bounds, settings.block_max_resolution_bounds,
+            layout, block_extent=extent, block_pixels=int(sum(image_pixels[i] for i in block.image_indices)),
+            log2_hashmap_bounds=settings.block_log2_hashmap_bounds, max_resolution_bounds=settings.block_max_resolution_bounds,
         )
         capacities[index] = BlockCapacity(
             log2_hashmap_size=chosen.log2_hashmap_size if settings.block_log2_hashmap_size is None else settings.block_log2_hashmap_size,

@@ -229,7 +229,7 @@ def _layout_stats(centres: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, n
 
 
 def _scaled_aabb(
-    members: np.ndarray, scale: np.ndarray, thin: float, layout_lo: np.ndarray, layout_hi: np.ndarray, flat: np.ndarray
+    members: np.ndarray, scale: np.ndarray, *, thin: float, layout_lo: np.ndarray, layout_hi: np.ndarray, flat: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """Scaled AABB (min [3], max [3]) of one group's camera centres ``members`` [M, 3].
 
@@ -254,6 +254,7 @@ def _to_vec3(values: np.ndarray) -> Vec3:
 def split_cameras(
     camera_centres: np.ndarray,
     num_blocks: int,
+    *,
     aabb_scale: Sequence[float] = (1.2, 1.2, 1.2),
     seed: int = 0,
     min_images_per_block: int = 1,
@@ -288,7 +289,7 @@ def split_cameras(
     scale_arr = np.asarray(scale, dtype=np.float64)
     blocks = []
     for index, group in enumerate(groups):
-        lo, hi = _scaled_aabb(centres[group], scale_arr, thin, layout_lo, layout_hi, flat)
+        lo, hi = _scaled_aabb(centres[group], scale_arr, thin=thin, layout_lo=layout_lo, layout_hi=layout_hi, flat=flat)
         if min_overlap_images > 0 and (scale_arr > 1.0).any() and len(groups) > 1:
             lo, hi = _grow_to_overlap(centres, group, lo, hi, min_overlap_images)
         inside = np.all((centres >= lo) & (centres <= hi), axis=1)

@@ -131,7 +131,7 @@ class ScalarInputDataset(InputDataset):
         filenames = self._dataparser_outputs.metadata.get("depth_filenames")
         if filenames is None:
             raise ValueError("this scene has no depth images (no depth_file_path in transforms.json)")
-        image = ray_depth_image(self.cameras, image_idx, Path(filenames[image_idx]), depth_scale(self._dataparser_outputs))
+        image = ray_depth_image(self.cameras, image_idx, path=Path(filenames[image_idx]), scale=depth_scale(self._dataparser_outputs))
         return image.ray_depth[..., None]
 
     def get_numpy_image(self, image_idx: int) -> npt.NDArray[np.uint8]:

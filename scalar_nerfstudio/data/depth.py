@@ -55,7 +55,7 @@ def missing_depth_files(metadata: Dict[str, Any]) -> Optional[List[Path]]:
     return [Path(path) for path in filenames if not Path(path).is_file()]
 
 
-def ray_depth_image(cameras: Cameras, image_idx: int, path: Path, scale: float) -> RayDepthImage:
+def ray_depth_image(cameras: Cameras, image_idx: int, *, path: Path, scale: float) -> RayDepthImage:
     """Image ``image_idx``'s depth file at ``path`` as distance along each pixel's ray.
 
     The depth images hold z-depth (along the optical axis, nerfstudio's convention) in units that
@@ -113,7 +113,7 @@ def scene_radius_from_depth(
         return None
     picked = sorted({round(i * (count - 1) / max(max_images - 1, 1)) for i in range(min(max_images, count))})
     scale = depth_scale(outputs)
-    radii = torch.cat([surface_radii(ray_depth_image(outputs.cameras, i, Path(filenames[i]), scale)) for i in picked])
+    radii = torch.cat([surface_radii(ray_depth_image(outputs.cameras, i, path=Path(filenames[i]), scale=scale)) for i in picked])
     if radii.numel() == 0:
         return None
     return float(margin * torch.quantile(radii.double(), quantile))

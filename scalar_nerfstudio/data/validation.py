@@ -238,7 +238,7 @@ def _check_layout(path: Path, poses: np.ndarray) -> None:
         )
 
 
-def _num_train(path: Path, meta: Dict[str, Any], names: List[str], image_key: Callable[[str], str],
+def _num_train(path: Path, meta: Dict[str, Any], names: List[str], *, image_key: Callable[[str], str],
                eval_mode: str, eval_interval: Optional[int], train_fraction: float) -> int:
     """The number of training images nerfstudio-data's split leaves (refusing an empty train or eval split)."""
     num = len(names)
@@ -359,7 +359,7 @@ def _decode_all(paths: Sequence[Path], workers: Optional[int]) -> List[Union[Ima
         return collected
 
 
-def _check_images(path: Path, root: Path, frames: List[Dict[str, Any]], intrinsics: List[Dict[str, float]],
+def _check_images(path: Path, root: Path, frames: List[Dict[str, Any]], *, intrinsics: List[Dict[str, float]],
                   meta: Dict[str, Any], factor: int, auto_factor: bool, workers: Optional[int]) -> Dict[ImageKind, int]:
     """Decode every image nerfstudio-data will load and compare its size with the frame's w/h;
     returns the conversions needed (kind -> count)."""
@@ -432,6 +432,7 @@ def _check_camera_model(path: Path, meta: Dict[str, Any]) -> None:
 
 def scan_scene(
     data: Path,
+    *,
     eval_interval: Optional[int] = None,
     eval_mode: str = "interval",
     train_fraction: float = 0.9,
@@ -470,16 +471,18 @@ def scan_scene(
         raise SceneError(f"--downscale-factor {downscale_factor}: must be at least 1 (1: the images themselves).")
     factor = _downscale_factor(root, str(frames[0]["file_path"]), downscale_factor)
     names = [str(frame["file_path"]) for frame in frames]
-    num_train = _num_train(transforms, meta, names, lambda name: str(_loaded_path(root, name, factor)),
-                           eval_mode, eval_interval, train_fraction)
+    num_train = _num_train(transforms, meta, names, image_key=lambda name: str(_loaded_path(root, name, factor)),
+                           eval_mode=eval_mode, eval_interval=eval_interval, train_fraction=train_fraction)
     _check_layout(transforms, np.stack(poses))
-    conversions = _check_images(transforms, root, frames, intrinsics, meta, factor, downscale_factor is None, workers)
+    conversions = _check_images(transforms, root, frames, intrinsics=intrinsics, meta=meta, factor=factor,
+                                auto_factor=downscale_factor is None, workers=workers)
     return SceneInfo(transforms=transforms, num_frames=len(frames), num_train=num_train, downscale_factor=factor, conversions=conversions)
 
 
 def check_scene(
-    data: Path, eval_interval: Optional[int] = None, eval_mode: str = "interval", train_fraction: float = 0.9,
+    data: Path, *, eval_interval: Optional[int] = None, eval_mode: str = "interval", train_fraction: float = 0.9,
     downscale_factor: Optional[int] = None,
 ) -> int:
     """Validate a nerfstudio-format scene (:func:`scan_scene`); returns its number of frames."""
-    return scan_scene(data, eval_interval, eval_mode, train_fraction, downscale_factor).num_frames
+    return scan_scene(data, eval_interval=eval_interval, eval_mode=eval_mode, train_fraction=train_fraction,
+                      downscale_factor=downscale_factor).num_frames

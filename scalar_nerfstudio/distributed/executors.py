@@ -162,7 +162,7 @@ class LocalExecutor:
     """A pool of block subprocesses on this machine: ``num_cpus // cpus`` at a time, and no more than
     the GPUs allow (``gpus`` per block, a share 1/n of one lets n blocks train on each GPU at once)."""
 
-    def __init__(self, num_cpus: int, cpus: int, gpus: float, gpu_count: Optional[int] = None) -> None:
+    def __init__(self, num_cpus: int, cpus: int, gpus: float, *, gpu_count: Optional[int] = None) -> None:
         import queue
         from concurrent.futures import ThreadPoolExecutor
 

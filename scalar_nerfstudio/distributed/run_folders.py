@@ -157,7 +157,7 @@ def read_done(block_dir: Path, global_checkpoint: Path) -> Tuple[Optional[dict],
     return done, ""
 
 
-def write_done(block_dir: Path, run: Path, attempt: int, seconds: float, global_checkpoint: Path) -> None:
+def write_done(block_dir: Path, run: Path, *, attempt: int, seconds: float, global_checkpoint: Path) -> None:
     """Record ``run`` as the block's result, atomically (:func:`atomic_write_text`)."""
     payload = {"run": str(run.relative_to(block_dir)), "attempt": attempt, "seconds": round(seconds, 1),
                "global_checkpoint": str(global_checkpoint)}

@@ -63,7 +63,8 @@ def default_cpus_per_block(total_cpus: int, num_blocks: int, node_cpus: Optional
     return max(1, min(share, node_cpus or share))
 
 
-def block_command(global_run: GlobalRun, block: int, attempt_dir: Path, gpus: float, block_steps: Optional[int], extra: List[str]) -> List[str]:
+def block_command(global_run: GlobalRun, block: int, *, attempt_dir: Path, gpus: float, block_steps: Optional[int],
+                  extra: List[str]) -> List[str]:
     """``ns-train`` arguments (after ``python -m nerfstudio.scripts.train``) of one block attempt."""
     steps = block_steps if block_steps is not None else global_run.block_steps
     args = [
@@ -116,7 +117,7 @@ def start_executor(resources: Resources, num_blocks: int) -> Tuple[Executor, int
     return executor, cpus, gpus
 
 
-def train_pending(resources: Resources, global_run: GlobalRun, states: Dict[int, BlockState], todo: List[int],
+def train_pending(resources: Resources, global_run: GlobalRun, *, states: Dict[int, BlockState], todo: List[int],
                   max_retries: int, block_steps: Optional[int], extra: List[str]) -> None:
     """Train the blocks ``todo`` (each with up to ``max_retries`` retries); ``states`` says how each ended."""
     executor, cpus, gpus = start_executor(resources, len(todo))
@@ -129,7 +130,8 @@ def train_pending(resources: Resources, global_run: GlobalRun, states: Dict[int,
             attempt_dir = new_attempt(state)
             state.status = "running"
             job = AttemptJob(state.block, attempt_number(attempt_dir), str(attempt_dir),
-                             block_command(global_run, state.block, attempt_dir, gpus, block_steps, extra),
+                             block_command(global_run, state.block, attempt_dir=attempt_dir, gpus=gpus, block_steps=block_steps,
+                                           extra=extra),
                              thread_env(cpus, gpus), cwd=os.getcwd())
             inflight[executor.submit(job)] = (state, attempt_dir)
             print(f"block {state.block}: attempt {state.attempts} of {max_retries + 1} in {attempt_dir}", flush=True)
@@ -144,7 +146,8 @@ def train_pending(resources: Resources, global_run: GlobalRun, states: Dict[int,
                 if result.returncode == 0:
                     run, why = finished_run(attempt_dir)
                 if run is not None:
-                    write_done(state.folder, run, attempt_number(attempt_dir), result.seconds, global_run.global_checkpoint)
+                    write_done(state.folder, run, attempt=attempt_number(attempt_dir), seconds=result.seconds,
+                               global_checkpoint=global_run.global_checkpoint)
                     state.status, state.run = "done", run
                     where = f" on Ray node {result.node[:12]}" if result.node else ""
                     print(f"block {state.block}: done in {result.seconds:.1f} s{where} ({run})", flush=True)

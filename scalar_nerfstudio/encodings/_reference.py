@@ -15,7 +15,7 @@ from scalar_nerfstudio.encodings.hash_grid import PRIME_Y, PRIME_Z
 
 
 def reference_hash_encoding(
-    positions: Tensor, table: Tensor, level_offsets: Tensor, resolutions: Sequence[int], hashmap_size: int
+    positions: Tensor, table: Tensor, *, level_offsets: Tensor, resolutions: Sequence[int], hashmap_size: int
 ) -> Tensor:
     """Straightforward per-level, per-vertex hash-grid encoding; the ground truth for tests.
 

@@ -223,7 +223,7 @@ class _PrecomputedEncoding(torch.autograd.Function):
     step that has already encoded its samples in a no-grad pass does not encode them again."""
 
     @staticmethod
-    def forward(
+    def forward(  # noqa: PLR0917 - torch's Function.apply passes the inputs positionally
         ctx: Any, positions: Tensor, table: Tensor, layout: GridLayout, encoding: Tensor, kernel: _OpNamespace | None
     ) -> Tensor:
         """``positions`` ``[N, 3]`` float32, ``encoding`` ``[N, L * F]`` (their encoding by ``table``) -> ``encoding``.
@@ -297,6 +297,7 @@ class HashGridEncoding(nn.Module):
 
     def __init__(
         self,
+        *,
         num_levels: int = 16,
         features_per_level: int = 4,
         log2_hashmap_size: int = 19,

@@ -44,7 +44,7 @@ def preview_scale(width: int, height: int, max_size: int) -> float:
 
 
 @torch.no_grad()
-def write_preview(pipeline, run_dir: Path, step: int, max_size: int = 512) -> Tuple[Path, float]:
+def write_preview(pipeline, run_dir: Path, *, step: int, max_size: int = 512) -> Tuple[Path, float]:
     """Render the first eval view with the pipeline's model (its current fusion) beside the ground
     truth, its longer side at most ``max_size`` pixels (0: the eval image's size); returns (the
     preview's path, the render's PSNR in dB against the ground truth at that size).

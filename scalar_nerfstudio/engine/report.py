@@ -41,7 +41,7 @@ def peak_memory_mib(device: torch.device | str) -> Dict[str, float]:
     return peak
 
 
-def model_entry(name: str, model: Any, optimizers: Iterable[torch.optim.Optimizer], trained: bool,
+def model_entry(name: str, model: Any, *, optimizers: Iterable[torch.optim.Optimizer], trained: bool,
                 parameter_count: Optional[Dict[str, int]] = None) -> Dict[str, Any]:
     """One row of the report for a :class:`ScalarModel` (global or block).
 
@@ -69,11 +69,12 @@ def scene_model_report(scene_model: Any, optimizers: Iterable[torch.optim.Optimi
     in its file counts its parameters, with 0 MiB in memory)."""
     optimizers = list(optimizers)
     started = set(scene_model.started_block_ids())
-    models = [model_entry("global", scene_model.global_model, optimizers, trained=True)]
+    models = [model_entry("global", scene_model.global_model, optimizers=optimizers, trained=True)]
     for index in scene_model.block_ids:
         count = None if scene_model.block_is_resident(index) else {
             "all": scene_model.block_parameter_count(index), "encoder": scene_model.block_parameter_count(index, "encoder")}
-        models.append(model_entry(f"block {index}", scene_model.blocks[str(index)], optimizers, trained=index in started, parameter_count=count))
+        models.append(model_entry(f"block {index}", scene_model.blocks[str(index)], optimizers=optimizers, trained=index in started,
+                                  parameter_count=count))
     return {
         "models": models,
         "total_parameters": sum(m["parameters"] for m in models),

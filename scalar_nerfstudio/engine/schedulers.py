@@ -42,7 +42,7 @@ class WarmupExponentialDecaySchedulerConfig(SchedulerConfig):
 
 
 def warmup_exponential_decay_factor(
-    step: int, max_steps: int, warmup_fraction: float, final_factor: float, warmup_steps: Optional[int] = None
+    step: int, max_steps: int, *, warmup_fraction: float, final_factor: float, warmup_steps: Optional[int] = None
 ) -> float:
     """Multiplier of the initial learning rate at ``step`` (a Python float in (0, 1]); ``warmup_steps``
     None: ``warmup_fraction`` of ``max_steps``."""
@@ -57,7 +57,7 @@ def warmup_exponential_decay_factor(
 
 
 def hold_then_restart_factor(
-    step: int, max_steps: int, warmup_fraction: float, final_factor: float, restart_fraction: float, restart_factor: float,
+    step: int, max_steps: int, *, warmup_fraction: float, final_factor: float, restart_fraction: float, restart_factor: float,
     warmup_steps: Optional[int] = None,
 ) -> float:
     """Multiplier of the initial learning rate at ``step`` of a schedule that restarts once.
@@ -70,10 +70,12 @@ def hold_then_restart_factor(
     """
     restart = int(round(restart_fraction * max_steps))
     if restart <= 0 or restart >= max_steps:
-        return warmup_exponential_decay_factor(step, max_steps, warmup_fraction, final_factor, warmup_steps)
+        return warmup_exponential_decay_factor(step, max_steps, warmup_fraction=warmup_fraction, final_factor=final_factor,
+                                               warmup_steps=warmup_steps)
     if step < restart:
-        return warmup_exponential_decay_factor(step, restart, warmup_fraction, 1.0, warmup_steps)
-    return restart_factor * warmup_exponential_decay_factor(step - restart, max_steps - restart, warmup_fraction, final_factor)
+        return warmup_exponential_decay_factor(step, restart, warmup_fraction=warmup_fraction, final_factor=1.0, warmup_steps=warmup_steps)
+    return restart_factor * warmup_exponential_decay_factor(step - restart, max_steps - restart, warmup_fraction=warmup_fraction,
+                                                            final_factor=final_factor)
 
 
 def schedule_function(config: WarmupExponentialDecaySchedulerConfig) -> Callable[[int], float]:
@@ -88,7 +90,8 @@ def schedule_function(config: WarmupExponentialDecaySchedulerConfig) -> Callable
     start, restart, factor = config.start_step, config.restart_fraction, config.restart_factor
     if not 0.0 <= restart < 1.0 or not (math.isfinite(factor) and factor >= 0):
         raise ValueError(f"restart_fraction must lie in [0, 1) and restart_factor be finite and >= 0, got {restart} and {factor}")
-    return lambda step: hold_then_restart_factor(step - start, max_steps, warmup, final, restart, factor, warmup_steps)
+    return lambda step: hold_then_restart_factor(step - start, max_steps, warmup_fraction=warmup, final_factor=final,
+                                                 restart_fraction=restart, restart_factor=factor, warmup_steps=warmup_steps)
 
 
 def warmup_steps_of(config: WarmupExponentialDecaySchedulerConfig) -> int:

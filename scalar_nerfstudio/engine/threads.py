@@ -120,7 +120,7 @@ def other_busy_cores(before: CpuSample, after: CpuSample, elapsed_s: float) -> f
     return max(others / elapsed_s, 0.0)
 
 
-def choose_threads(cores: int, other_busy_cores: float, current: int, min_threads: int = 1,
+def choose_threads(cores: int, other_busy_cores: float, current: int, *, min_threads: int = 1,
                    max_threads: Optional[int] = None, up_margin: float = 0.25) -> int:
     """The thread count to use next, from the cores other processes keep busy.
 
@@ -233,7 +233,7 @@ class ThreadGovernor:
         self.last_other_cores = others
         current = self.get_threads()
         high = self._ceiling if self.max_threads is not None else max(min(self._ceiling, sample.cores), self.min_threads)
-        wanted = choose_threads(sample.cores, others, current, self.min_threads, high, self.up_margin)
+        wanted = choose_threads(sample.cores, others, current, min_threads=self.min_threads, max_threads=high, up_margin=self.up_margin)
         if wanted == current:
             self._pending, self._streak = None, 0
             return

@@ -280,15 +280,17 @@ class ScalarTrainer(Trainer):
             self._block_pace_planned = True  # the blocks' steps again, at the first block's own pace
             pace = clock.pace(since_steps=phase.start_step + min(10, done_in_block // 2)) or 0.0
             remaining = budget - self._budget_spent_s(step + 1, pace)
-            self._replan(blocks_from_remaining_time(pipeline.length, pipeline.length_settings(), pipeline.num_blocks_following,
-                                                    remaining, pace, first_block_steps_done=done_in_block), started_through=step)
+            self._replan(blocks_from_remaining_time(pipeline.length, pipeline.length_settings(),
+                                                    num_blocks_trained=pipeline.num_blocks_following, remaining_s=remaining,
+                                                    pace_steps_per_s=pace, first_block_steps_done=done_in_block), started_through=step)
             CONSOLE.print(f"step {step + 1}: {pace:.2f} steps/s in {phase.name}; {format_length(pipeline.length, pipeline.phases)}; "
                           f"{eta_line(self._total_steps - step - 1, pace)}")
         if budget is not None and phase.block is None and step + 1 == phase.end_step and not pipeline.length.blocks_measured:
             pace = clock.pace(last_steps=200) or pipeline.length.pace_steps_per_s or 0.0
             remaining = budget - self._budget_spent_s(step + 1, pace)
-            self._replan(blocks_from_remaining_time(pipeline.length, pipeline.length_settings(), pipeline.num_blocks_following,
-                                                    remaining, pace), started_through=step)
+            self._replan(blocks_from_remaining_time(pipeline.length, pipeline.length_settings(),
+                                                    num_blocks_trained=pipeline.num_blocks_following, remaining_s=remaining,
+                                                    pace_steps_per_s=pace), started_through=step)
             CONSOLE.print(f"step {step + 1}: the global phase took {format_duration(clock.elapsed_s())}; "
                           f"{format_duration(max(remaining, 0))} "
                           f"of the budget left: {format_length(pipeline.length, pipeline.phases)}")
@@ -303,8 +305,8 @@ class ScalarTrainer(Trainer):
         pipeline = self.phased_pipeline
         remaining = max(budget - self._budget_spent_s(step + 1, pace), 0.0)
         effective = (step + 1 + remaining * pace) / budget  # steps per second of budget: those done and those that fit
-        length = length_from_budget(pipeline.length, pipeline.length_settings(), pipeline.num_blocks_following, effective,
-                                    steps_done=step + 1)
+        length = length_from_budget(pipeline.length, pipeline.length_settings(), num_blocks_trained=pipeline.num_blocks_following,
+                                    pace_steps_per_s=effective, steps_done=step + 1)
         self._replan(length, started_through=step)
 
     def _budget_spent_s(self, steps_done: int, pace: float) -> float:
@@ -353,7 +355,7 @@ class ScalarTrainer(Trainer):
             self.stop_training = True  # a time budget's loop runs to its longest possible plan
         every = self.config.steps_per_preview
         if every > 0 and ((step + 1) % every == 0 or step + 1 == self._total_steps):
-            path, psnr = write_preview(self.pipeline, self.base_dir, step, self.config.preview_max_size)
+            path, psnr = write_preview(self.pipeline, self.base_dir, step=step, max_size=self.config.preview_max_size)
             CONSOLE.print(f"step {step + 1}: preview (render | ground truth, eval view 0, {psnr:.2f} dB) written to {path}")
         phase = self.phased_pipeline.phase_at(step)
         if step + 1 == min(phase.end_step, self._total_steps):  # a run may end before its phase's planned end

@@ -75,7 +75,7 @@ def mlp_arguments(mlp: nn.Sequential) -> tuple[tuple[bool, ...], list[Optional[T
     return tuple(relu), params
 
 
-def padded_bias(bias: Optional[Tensor], out_dim: int, like: Tensor, multiple: int = _WIDTH_MULTIPLE) -> Tensor:
+def padded_bias(bias: Optional[Tensor], out_dim: int, like: Tensor, *, multiple: int = _WIDTH_MULTIPLE) -> Tensor:
     """Bias [O] (zeros where None) as float32 [Op], zero-padded to a multiple of ``multiple``, on ``like``'s device."""
     padded = like.new_zeros(padded_width(out_dim, multiple), dtype=torch.float32)
     if bias is not None:
@@ -83,7 +83,7 @@ def padded_bias(bias: Optional[Tensor], out_dim: int, like: Tensor, multiple: in
     return padded
 
 
-def layer_gradients(results: Sequence[Tensor], shapes: Sequence[tuple[int, int]], has_bias: Sequence[bool],
+def layer_gradients(results: Sequence[Tensor], shapes: Sequence[tuple[int, int]], *, has_bias: Sequence[bool],
                     needs_grad: Sequence[bool]) -> list[Optional[Tensor]]:
     """The parameters' gradients from a fused backward's ``results`` (the input gradient, then per layer
     grad_wt [Kp, Op] and grad_b [Op]): per layer weight [O, K] then bias [O], None where ``needs_grad``
@@ -138,7 +138,7 @@ class _FusedMlp(torch.autograd.Function):
             grad_out.float().contiguous(), activations, packed_t, ctx.flags, ctx.in_dim if need_input else 0
         )
         grad_input = results[0].to(ctx.input_dtype) if need_input else None
-        return (grad_input, None, *layer_gradients(results, ctx.shapes, ctx.has_bias, ctx.needs_input_grad[2:]))
+        return (grad_input, None, *layer_gradients(results, ctx.shapes, has_bias=ctx.has_bias, needs_grad=ctx.needs_input_grad[2:]))
 
 
 def fused_mlp(mlp: nn.Sequential, inputs: Tensor) -> Tensor:

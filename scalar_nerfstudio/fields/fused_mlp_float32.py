@@ -57,7 +57,7 @@ class _FusedMlpFloat32(torch.autograd.Function):
     def forward(ctx, inputs: Tensor, relu: tuple[bool, ...], isa: str, *params: Tensor) -> Tensor:  # type: ignore[override]
         weights, biases = params[0::2], params[1::2]
         packed = [pack_weights_float32(w) for w in weights]
-        padded_biases = [padded_bias(b, w.shape[0], w, _WIDTH_MULTIPLE) for w, b in zip(weights, biases)]
+        padded_biases = [padded_bias(b, w.shape[0], w, multiple=_WIDTH_MULTIPLE) for w, b in zip(weights, biases)]
         flags = [int(r) for r in relu]
         results = torch.ops.scalar_nerf_mlp_f32.forward(
             inputs.contiguous(), [f for f, _ in packed], padded_biases, flags, weights[-1].shape[0], isa
@@ -81,7 +81,7 @@ class _FusedMlpFloat32(torch.autograd.Function):
             grad_out.float().contiguous(), activations, packed, ctx.flags, ctx.in_dim if need_input else 0, ctx.isa
         )
         grad_input = results[0] if need_input else None
-        return (grad_input, None, None, *layer_gradients(results, ctx.shapes, ctx.has_bias, ctx.needs_input_grad[3:]))
+        return (grad_input, None, None, *layer_gradients(results, ctx.shapes, has_bias=ctx.has_bias, needs_grad=ctx.needs_input_grad[3:]))
 
 
 def fused_mlp_float32(mlp: nn.Sequential, inputs: Tensor, isa: Optional[Float32Isa] = None) -> Tensor:

@@ -60,7 +60,7 @@ def to_region_frame(positions: Tensor, centre: Tensor, radius: float) -> Tensor:
     return (positions - centre.to(positions.dtype)) / radius
 
 
-def contract_rays_to_unit_cube(origins: Tensor, directions: Tensor, t: Tensor, centre: Tensor, radius: float) -> Tensor:
+def contract_rays_to_unit_cube(origins: Tensor, directions: Tensor, t: Tensor, *, centre: Tensor, radius: float) -> Tensor:
     """The samples at distances ``t`` along rays, in the contracted unit cube of a region.
 
     ``contract_to_unit_cube((origins + directions * t - centre) / radius)`` for every sample, in one
@@ -184,6 +184,7 @@ class Decoder(nn.Module):
 
     def __init__(
         self,
+        *,
         in_dim: int,
         hidden_dim: int,
         geo_feat_dim: int,
@@ -403,7 +404,7 @@ class ScalarField(nn.Module):
         mean = self.appearance.weight.mean(dim=0, keepdim=True)
         return mean.expand(num_points, -1)
 
-    def colour(self, geo_features: Tensor, ray_directions: Tensor, ray_ids: Tensor, camera_indices: Optional[Tensor]) -> Tensor:
+    def colour(self, geo_features: Tensor, ray_directions: Tensor, ray_ids: Tensor, *, camera_indices: Optional[Tensor]) -> Tensor:
         """RGB of samples on rays: the view-direction encoding and the appearance are computed once per ray.
 
         Args:

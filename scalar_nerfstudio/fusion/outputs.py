@@ -44,6 +44,7 @@ def fuse_outputs(
     mode: str | ParsedFusionMode,
     block_outputs: Sequence[Mapping[str, Tensor]],
     global_outputs: Mapping[str, Tensor] | None,
+    *,
     camera_origin: Tensor | None,
     block_centres: Tensor | None,
     gamma: float = 1.0,
@@ -104,12 +105,14 @@ def fuse_outputs(
     scores = None if block_scores is None else block_scores.reshape(len(block_outputs), num_pixels)
     weights = fusion_weights(
         parsed, stacked["rgb"], None if glob is None else glob.get("rgb"),
-        None if camera_origin is None else _origins(camera_origin, pixel_shape), block_centres, gamma, scores, blocks_per_ray,
+        camera_origin=None if camera_origin is None else _origins(camera_origin, pixel_shape), block_centres=block_centres, gamma=gamma,
+        block_scores=scores, blocks_per_ray=blocks_per_ray,
     )
     if parsed.kind == "nearest-guarded":
         if "accumulation" not in stacked:
             raise ValueError("fusion mode 'nearest-guarded' needs 'accumulation' in every block output and in the global model's")
-        weights = guard_transparent(weights, stacked["accumulation"], glob["accumulation"], guard_accumulation)  # type: ignore[index]
+        weights = guard_transparent(weights, stacked["accumulation"], glob["accumulation"],  # type: ignore[index]
+                                    threshold=guard_accumulation)
     fused = {k: fuse_weighted(v, weights, None if glob is None else glob.get(k)) for k, v in stacked.items()}
     out = {k: v.reshape(*pixel_shape, v.shape[-1]) for k, v in fused.items()}
     out["block_winner"] = weights_winner(weights).reshape(pixel_shape)

@@ -44,7 +44,7 @@ def fuse_global_guided(
 
 
 def idw_weights(
-    camera_origin: Tensor, block_centres: Tensor, gamma: float = 1.0, valid: Tensor | None = None
+    camera_origin: Tensor, block_centres: Tensor, *, gamma: float = 1.0, valid: Tensor | None = None
 ) -> Tensor:
     """Inverse-distance weights ``w_k = d_k^-gamma / sum_j d_j^-gamma`` (Eq. idw).
 
@@ -60,7 +60,7 @@ def idw_weights(
         those blocks equal shares of all the weight (no division by zero).  Where no block
         is valid all weights are 0.
     """
-    return nearest_idw_weights(camera_origin, block_centres, None, gamma, valid)
+    return nearest_idw_weights(camera_origin, block_centres, num_nearest=None, gamma=gamma, valid=valid)
 
 
 def score_weights(scores: Tensor, selected: Tensor, gamma: float = 1.0) -> Tensor:
@@ -73,7 +73,7 @@ def score_weights(scores: Tensor, selected: Tensor, gamma: float = 1.0) -> Tenso
 
 
 def nearest_idw_weights(
-    camera_origin: Tensor, block_centres: Tensor, num_nearest: int | None, gamma: float = 2.0, valid: Tensor | None = None
+    camera_origin: Tensor, block_centres: Tensor, *, num_nearest: int | None, gamma: float = 2.0, valid: Tensor | None = None
 ) -> Tensor:
     """Inverse-distance weights over the ``num_nearest`` valid blocks nearest to the camera (``nearest-idw``).
 
@@ -121,7 +121,7 @@ def transparent_pixels(weights: Tensor, block_accumulation: Tensor, threshold: f
 
 
 def guard_transparent(
-    weights: Tensor, block_accumulation: Tensor, global_accumulation: Tensor, threshold: float = 0.5
+    weights: Tensor, block_accumulation: Tensor, global_accumulation: Tensor, *, threshold: float = 0.5
 ) -> Tensor:
     """``nearest-guarded``: take the blocks out of the pixels where what they give is transparent
     (:func:`transparent_pixels`: accumulated opacity below ``threshold``, or no usable block) and the
@@ -156,6 +156,7 @@ def fusion_weights(
     mode: str | ParsedFusionMode,
     block_rgb: Tensor,
     global_rgb: Tensor | None = None,
+    *,
     camera_origin: Tensor | None = None,
     block_centres: Tensor | None = None,
     gamma: float = 1.0,
@@ -207,9 +208,9 @@ def fusion_weights(
             raise ValueError(f"{block_centres.shape[0]} block centres for {num_blocks} block outputs")
         origins = camera_origin if camera_origin.ndim == 2 else camera_origin[None].expand(num_pixels, 3)
         if parsed.kind == "idw":  # shares over the blocks usable at each pixel
-            return idw_weights(origins, block_centres, gamma, valid=usable.to(origins.device)).to(block_rgb.device)
+            return idw_weights(origins, block_centres, gamma=gamma, valid=usable.to(origins.device)).to(block_rgb.device)
         if parsed.kind == "nearest-idw":  # shares over the blocks_per_ray nearest usable at each pixel
-            return nearest_idw_weights(origins, block_centres, blocks_per_ray or num_blocks, gamma,
+            return nearest_idw_weights(origins, block_centres, num_nearest=blocks_per_ray or num_blocks, gamma=gamma,
                                        valid=usable.to(origins.device)).to(block_rgb.device)
         winner = nearest_block(origins, block_centres, valid=usable.to(origins.device))
     winner = _per_pixel(winner, num_pixels).to(block_rgb.device)

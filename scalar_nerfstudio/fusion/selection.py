@@ -85,7 +85,7 @@ def nearest_block(camera_origin: Tensor, block_centres: Tensor, valid: Tensor | 
     return torch.where(valid_mask.any(dim=0), index, torch.full_like(index, -1))
 
 
-def nearest_blocks(camera_origin: Tensor, block_centres: Tensor, num_nearest: int | None, valid: Tensor | None = None) -> Tensor:
+def nearest_blocks(camera_origin: Tensor, block_centres: Tensor, *, num_nearest: int | None, valid: Tensor | None = None) -> Tensor:
     """``[K]`` or ``[K, N]`` bool: the ``num_nearest`` valid blocks whose centres are nearest the camera.
 
     Args:

@@ -18,7 +18,7 @@ class BoundedNearFarCollider(NearFarCollider):
     where it leaves it (or at the far plane, if that comes first); a ray that misses it is empty
     (near = far) and renders as the background."""
 
-    def __init__(self, near_plane: float, far_plane: float, reset_near_plane: bool, scene_radius: Optional[float] = None) -> None:
+    def __init__(self, near_plane: float, far_plane: float, *, reset_near_plane: bool, scene_radius: Optional[float] = None) -> None:
         super().__init__(near_plane=near_plane, far_plane=far_plane, reset_near_plane=reset_near_plane)
         if scene_radius is not None and not (math.isfinite(scene_radius) and scene_radius > 0):
             raise ValueError(f"scene radius {scene_radius}: must be a finite number > 0 (None: unbounded)")

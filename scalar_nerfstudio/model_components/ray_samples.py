@@ -10,7 +10,7 @@ import torch
 from torch import Tensor
 
 
-def neutralise_bad_rays(origins: Tensor, directions: Tensor, nears: Tensor, fars: Tensor) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
+def neutralise_bad_rays(origins: Tensor, directions: Tensor, *, nears: Tensor, fars: Tensor) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
     """Rays [R, 3] with a NaN/inf origin or direction (or near/far) are reported and made empty.
 
     They render as the background with zero accumulation instead of spreading NaN through the batch.

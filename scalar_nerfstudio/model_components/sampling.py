@@ -59,7 +59,7 @@ def sphere_interval(origins: Tensor, directions: Tensor, radius: float) -> tuple
     return t_entry, t_exit
 
 
-def sample_intervals(nears: Tensor, fars: Tensor, num_samples: int, jitter: bool) -> tuple[Tensor, Tensor]:
+def sample_intervals(nears: Tensor, fars: Tensor, *, num_samples: int, jitter: bool) -> tuple[Tensor, Tensor]:
     """Intervals along each ray, evenly spaced in :func:`lin_disp_spacing` space.
 
     Args:
@@ -144,6 +144,7 @@ class OccupancyGrid(nn.Module):
 
     def __init__(
         self,
+        *,
         resolution: int = 64,
         update_every: int = 16,
         warmup_steps: int = 256,

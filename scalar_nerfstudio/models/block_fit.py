@@ -39,7 +39,7 @@ class EncodingFit:
     final_error: float
 
 
-def occupied_cell_sampler(cells: Tensor, resolution: int, to_world: Callable[[Tensor], Tensor],
+def occupied_cell_sampler(cells: Tensor, resolution: int, *, to_world: Callable[[Tensor], Tensor],
                           generator: Optional[torch.Generator] = None) -> Callable[[int], Tensor]:
     """A sampler of world points, uniform over cells of a ``G^3`` grid of the contracted unit cube.
 
@@ -67,6 +67,7 @@ def occupied_cell_sampler(cells: Tensor, resolution: int, to_world: Callable[[Te
 
 def fit_encoding(
     student: HashGridEncoding,
+    *,
     student_unit: Callable[[Tensor], Tensor],
     teacher: HashGridEncoding,
     teacher_unit: Callable[[Tensor], Tensor],

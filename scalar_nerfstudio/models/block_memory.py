@@ -47,7 +47,7 @@ def is_released_state(state: Dict[str, Tensor]) -> bool:
     return all(tensor.numel() == 0 for tensor in state.values())
 
 
-def install_tensors(module: nn.Module, state: Dict[str, Tensor], specs: Dict[str, TensorSpec], what: str) -> None:
+def install_tensors(module: nn.Module, state: Dict[str, Tensor], *, specs: Dict[str, TensorSpec], what: str) -> None:
     """Give ``module``'s tensors the values in ``state`` (its own state-dict keys), in place.
 
     Raises:

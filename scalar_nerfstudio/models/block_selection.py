@@ -8,6 +8,7 @@ model's depth, which the caller renders only when it is needed (``global_depth``
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Callable, List, Optional, Sequence, Tuple
 
 import torch
@@ -15,6 +16,22 @@ from torch import Tensor
 
 from scalar_nerfstudio.blocks.observation import observed_at
 from scalar_nerfstudio.fusion import ParsedFusionMode, nearest_block, nearest_blocks, region_scores, select_blocks, surface_points
+
+
+@dataclass(frozen=True, eq=False)  # eq=False: == on tensors is elementwise, so two records compare by identity
+class BlockRegions:
+    """Every block's region, indexed by block id: what :func:`select_rays` chooses a ray's blocks by.
+
+    Attributes:
+        centres: [K, 3] the blocks' centres.
+        radii: [K] their radii (:func:`~scalar_nerfstudio.blocks.split.block_region`).
+        observation: [K, G^3] bool, the cells each block's cameras observe (``blocks/observation.py``);
+            None: blocks are chosen by their regions alone.
+    """
+
+    centres: Tensor
+    radii: Tensor
+    observation: Optional[Tensor] = None
 
 
 def blocks_for(mode: ParsedFusionMode, started: Sequence[int]) -> List[int]:
@@ -31,11 +48,10 @@ def blocks_for(mode: ParsedFusionMode, started: Sequence[int]) -> List[int]:
 def select_rays(
     mode: ParsedFusionMode,
     block_ids: List[int],
+    *,
     origins: Tensor,
     directions: Tensor,
-    block_centres: Tensor,
-    block_radii: Tensor,
-    block_observation: Optional[Tensor],
+    regions: BlockRegions,
     blocks_per_ray: int,
     global_depth: Callable[[], Tensor],
 ) -> Tuple[Tensor, Optional[Tensor]]:
@@ -49,10 +65,9 @@ def select_rays(
 
     Args:
         origins, directions: [R, 3] the rays.
-        block_centres, block_radii: [K, 3] and [K] every block's region (indexed by block id).
-        block_observation: [K, G^3] bool, the cells each block's cameras observe: a block is chosen
-            only where it observes the surface point (a ray no block observes gets none); None: by
-            region alone.
+        regions: every block's region (indexed by block id); with its ``observation``, a block is
+            chosen only where it observes the surface point (a ray no block observes gets none),
+            without it by region alone.
         blocks_per_ray: how many blocks per ray (0: every block).
         global_depth: renders the global model's depth [R, 1] of the rays, when the mode needs it.
     """
@@ -60,19 +75,19 @@ def select_rays(
     every = torch.ones(num_blocks, num_rays, dtype=torch.bool, device=origins.device)
     if mode.kind == "block":
         return every, None
-    centres = block_centres[block_ids].to(origins.device)
+    centres = regions.centres[block_ids].to(origins.device)
     if mode.kind in ("nearest", "nearest-guarded"):
         nearest = nearest_block(origins, centres)
         return torch.arange(num_blocks, device=origins.device)[:, None] == nearest[None], None
     limit = blocks_per_ray
     if mode.kind == "nearest-idw":  # the blocks the weights will use: the `limit` nearest the origin
-        return nearest_blocks(origins, centres, limit if limit > 0 else num_blocks), None
+        return nearest_blocks(origins, centres, num_nearest=limit if limit > 0 else num_blocks), None
     if mode.kind != "surface" and (limit <= 0 or limit >= num_blocks):
         return every, None
     points = surface_points(origins, directions, global_depth())
-    scores = region_scores(points, centres, block_radii[block_ids].to(origins.device))
+    scores = region_scores(points, centres, regions.radii[block_ids].to(origins.device))
     usable = None
-    if block_observation is not None:
-        usable = observed_at(block_observation[block_ids], points).to(scores.device)  # [K', R]
+    if regions.observation is not None:
+        usable = observed_at(regions.observation[block_ids], points).to(scores.device)  # [K', R]
         scores = torch.where(usable, scores, torch.full_like(scores, float("inf")))
     return select_blocks(scores, limit if limit > 0 else num_blocks, usable), scores

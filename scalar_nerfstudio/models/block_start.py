@@ -65,7 +65,7 @@ def block_model_config(config: ScalarModelConfig, capacity: Optional[BlockCapaci
     return replace(config, field=field_config)
 
 
-def new_block_model(config: ScalarModelConfig, capacity: Optional[BlockCapacity], block: Block, block_init: BlockInit,
+def new_block_model(config: ScalarModelConfig, *, capacity: Optional[BlockCapacity], block: Block, block_init: BlockInit,
                     scene_box: SceneBox, num_images: int) -> ScalarModel:
     """Block ``block``'s model, freshly initialised: in the global model's frame (``block_init``
     global) or in its own (:func:`block_region`), with ``num_images`` appearance embeddings."""
@@ -77,7 +77,7 @@ def new_block_model(config: ScalarModelConfig, capacity: Optional[BlockCapacity]
 
 
 @torch.no_grad()
-def start_block(model: ScalarModel, global_model: ScalarModel, image_indices: Sequence[int], decoder_mode: DecoderMode,
+def start_block(model: ScalarModel, global_model: ScalarModel, *, image_indices: Sequence[int], decoder_mode: DecoderMode,
                 block_init: BlockInit, seed_occupancy: bool) -> None:
     """Start a block's phase on its freshly initialised ``model``: copy the global decoder into it
     (finetune / frozen); with ``block_init`` global, also the global table, occupancy grid and the
@@ -96,7 +96,7 @@ def start_block(model: ScalarModel, global_model: ScalarModel, image_indices: Se
 
 
 @torch.no_grad()
-def fit_block(model: ScalarModel, global_model: ScalarModel, image_indices: Sequence[int], observation: Optional[Tensor],
+def fit_block(model: ScalarModel, global_model: ScalarModel, *, image_indices: Sequence[int], observation: Optional[Tensor],
               centre: Tensor, radius: float, seed: int, steps: int, points_per_step: int) -> EncodingFit:
     """``block_init`` fitted: a block's table fitted to the global model's encoding
     (:func:`~scalar_nerfstudio.models.block_fit.fit_encoding`), and its images' appearance embeddings copied.
@@ -118,11 +118,12 @@ def fit_block(model: ScalarModel, global_model: ScalarModel, image_indices: Sequ
     if bool(near_block.any()):
         cells = cells[near_block]
     generator = torch.Generator(device=cells.device).manual_seed(seed)
-    sampler = occupied_cell_sampler(cells, grid.resolution, global_model.unit_cube_to_world, generator)
+    sampler = occupied_cell_sampler(cells, grid.resolution, to_world=global_model.unit_cube_to_world, generator=generator)
     copy_appearance(model, global_model, image_indices)
     return fit_encoding(
-        model.field.encoder, model.world_to_unit_cube, global_model.field.encoder, global_model.world_to_unit_cube,
-        sampler, steps=steps, points_per_step=points_per_step,
+        model.field.encoder, student_unit=model.world_to_unit_cube,
+        teacher=global_model.field.encoder, teacher_unit=global_model.world_to_unit_cube,
+        sample_points=sampler, steps=steps, points_per_step=points_per_step,
     )
 
 

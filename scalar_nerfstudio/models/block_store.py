@@ -84,11 +84,11 @@ class BlockStore:
         specs = self.specs[block]
         return spec_numel(specs, [k for k in specs if k.startswith(head)])
 
-    def install(self, block: int, state: Dict[str, Tensor], what: str, evictable: bool) -> None:
+    def install(self, block: int, state: Dict[str, Tensor], *, what: str, evictable: bool) -> None:
         """Give block ``block``'s model the weights ``state`` (its own state-dict keys; ``what`` names
         where they come from in errors); then release the least recently used loaded blocks over the limit."""
         model = self.blocks[str(block)]
-        install_tensors(model, model.complete_state(dict(state)), self.specs[block], what)
+        install_tensors(model, model.complete_state(dict(state)), specs=self.specs[block], what=what)
         self.resident.add(block, evictable)
         for other in self.resident.over_limit(keep=block):
             self._free(other)  # evictable: its weights are in its file
@@ -122,7 +122,7 @@ class BlockStore:
             self.resident.touch(block)
         elif block in self.stored:
             path = self.path(block)
-            self.install(block, load_block_file(path, block), f"block {block} from {path}", evictable=True)
+            self.install(block, load_block_file(path, block), what=f"block {block} from {path}", evictable=True)
         else:
             raise RuntimeError(f"block {block} has no weights: it has not started training")
         return self.blocks[str(block)]
@@ -165,7 +165,7 @@ class BlockStore:
             if block not in started:
                 continue
             if state and not is_released_state(state):
-                self.install(block, state, f"block {block} in the checkpoint", evictable=False)
+                self.install(block, state, what=f"block {block} in the checkpoint", evictable=False)
             elif self.directory is not None and not self.path(block).is_file():
                 raise FileNotFoundError(
                     f"the checkpoint says block {block} has trained, but its weights are neither in it nor in "

@@ -9,7 +9,7 @@ its block regions and its config as they are at that moment.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable, Dict, List, Literal, Optional, Set, Tuple, Union
 
 import torch
@@ -27,7 +27,7 @@ from scalar_nerfstudio.fusion import (
     weights_winner,
 )
 from scalar_nerfstudio.model_components.rendering import facing_normals, normals_from_unit_interval, normals_to_unit_interval, safe_normalise
-from scalar_nerfstudio.models.block_selection import select_rays
+from scalar_nerfstudio.models.block_selection import BlockRegions, select_rays
 from scalar_nerfstudio.models.scalar_model import ScalarModel
 
 
@@ -58,9 +58,8 @@ class FusedRenderer:
         block_model: block id -> its model with its weights in memory (loaded if need be).
         block_shell: block id -> its model as held (weights possibly released; for rays it renders none of).
         settings: the fusion options.
-        block_centres, block_radii: [K, 3] and [K] every block's region (indexed by block id).
-        block_observation: [K, G^3] bool, the cells each block's cameras observe (None: blocks are
-            chosen by their regions alone).
+        regions: every block's region (indexed by block id); its ``observation`` is used only with
+            ``settings.observed_blocks_only``.
         rendered_models: set the models rendered are added to (block ids, ``"global"``).
         rays_rendered_by_block: dict each block's count of rendered rays is added to.
     """
@@ -68,12 +67,11 @@ class FusedRenderer:
     def __init__(
         self,
         global_model: ScalarModel,
+        *,
         block_model: Callable[[int], ScalarModel],
         block_shell: Callable[[int], ScalarModel],
         settings: FusionSettings,
-        block_centres: Tensor,
-        block_radii: Tensor,
-        block_observation: Optional[Tensor],
+        regions: BlockRegions,
         rendered_models: Set[Union[int, str]],
         rays_rendered_by_block: Dict[int, int],
     ) -> None:
@@ -81,13 +79,11 @@ class FusedRenderer:
         self.block_model = block_model
         self.block_shell = block_shell
         self.settings = settings
-        self.block_centres = block_centres
-        self.block_radii = block_radii
-        self.block_observation = block_observation
+        self.regions = regions
         self.rendered_models = rendered_models
         self.rays_rendered_by_block = rays_rendered_by_block
 
-    def render(self, ray_bundle: RayBundle, mode: ParsedFusionMode, block_ids: List[int], normals: bool) -> Dict[str, Tensor]:
+    def render(self, ray_bundle: RayBundle, mode: ParsedFusionMode, block_ids: List[int], *, normals: bool) -> Dict[str, Tensor]:
         """Fused ``rgb`` [R, 3], ``depth`` [R, 1], ``accumulation`` [R, 1], ``block_winner`` [R, 1],
         ``block_colour`` [R, 3]; ``normals`` [R, 3] in [0, 1] when ``normals``.
 
@@ -108,7 +104,7 @@ class FusedRenderer:
             global_outputs = self.global_model.render_rays(ray_bundle, normals=normals and not block_ids)
             self.rendered_models.add("global")
         if block_ids:
-            selected, scores = self.select_rays(mode, block_ids, ray_bundle, global_outputs)  # [K', R]
+            selected, scores = self.select_rays(mode, block_ids, ray_bundle, global_outputs=global_outputs)  # [K', R]
             used = selected.any(dim=1)  # blocks no ray chose take no part at all: the cost is O(chosen), not O(K)
             if not bool(used.all()):
                 rows = torch.nonzero(used).squeeze(-1)
@@ -126,10 +122,10 @@ class FusedRenderer:
         rgb_stack = torch.stack([o["rgb"] for o in block_outputs])  # [K', R, 3]
         weights = fusion_weights(
             ParsedFusionMode(kind="block", block_index=0) if mode.kind == "block" else mode,
-            rgb_stack, None if global_outputs is None else global_outputs["rgb"], origins,
-            self.block_centres[block_ids].to(origins.device),
-            settings.nearest_idw_gamma if mode.kind == "nearest-idw" else settings.idw_gamma, scores,
-            settings.blocks_per_ray or None,
+            rgb_stack, None if global_outputs is None else global_outputs["rgb"], camera_origin=origins,
+            block_centres=self.regions.centres[block_ids].to(origins.device),
+            gamma=settings.nearest_idw_gamma if mode.kind == "nearest-idw" else settings.idw_gamma, block_scores=scores,
+            blocks_per_ray=settings.blocks_per_ray or None,
         )
         if mode.kind == "nearest-guarded":
             weights, global_outputs = self._guard_transparent_blocks(weights, block_outputs, ray_bundle, normals)
@@ -158,7 +154,7 @@ class FusedRenderer:
 
     @torch.no_grad()
     def select_rays(
-        self, mode: ParsedFusionMode, block_ids: List[int], ray_bundle: RayBundle, global_outputs: Optional[Dict[str, Tensor]] = None
+        self, mode: ParsedFusionMode, block_ids: List[int], ray_bundle: RayBundle, *, global_outputs: Optional[Dict[str, Tensor]] = None
     ) -> Tuple[Tensor, Optional[Tensor]]:
         """:func:`~scalar_nerfstudio.models.block_selection.select_rays` of the bundle's rays; the global
         depth is taken from ``global_outputs`` when given, else rendered from the density alone."""
@@ -171,9 +167,9 @@ class FusedRenderer:
             return outputs["depth"]
 
         return select_rays(
-            mode, block_ids, ray_bundle.origins.reshape(-1, 3), ray_bundle.directions.reshape(-1, 3), self.block_centres,
-            self.block_radii, self.block_observation if self.settings.observed_blocks_only else None,
-            self.settings.blocks_per_ray, global_depth,
+            mode, block_ids, origins=ray_bundle.origins.reshape(-1, 3), directions=ray_bundle.directions.reshape(-1, 3),
+            regions=self.regions if self.settings.observed_blocks_only else replace(self.regions, observation=None),
+            blocks_per_ray=self.settings.blocks_per_ray, global_depth=global_depth,
         )
 
     def _guard_transparent_blocks(
@@ -190,7 +186,7 @@ class FusedRenderer:
         global_outputs = self._render_global_rays(ray_bundle, suspects, normals)
         if bool(suspects.any()):
             self.rendered_models.add("global")
-        return guard_transparent(weights, block_accumulation, global_outputs["accumulation"], threshold), global_outputs
+        return guard_transparent(weights, block_accumulation, global_outputs["accumulation"], threshold=threshold), global_outputs
 
     def _render_block_rays(self, block: int, ray_bundle: RayBundle, rays: Tensor, normals: bool) -> Dict[str, Tensor]:
         """Block ``block``'s render of the rays where ``rays`` [R] is True; NaN on the others."""

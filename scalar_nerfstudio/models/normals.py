@@ -27,7 +27,7 @@ def check_render_normals(mode: str) -> RenderNormals:
 
 
 def render_in_chunks(
-    forward: Callable[..., Dict[str, Tensor]], camera_ray_bundle: RayBundle, rays_per_chunk: int, device: torch.device
+    forward: Callable[..., Dict[str, Tensor]], camera_ray_bundle: RayBundle, *, rays_per_chunk: int, device: torch.device
 ) -> Dict[str, Tensor]:
     """nerfstudio's camera render loop: ``forward`` on ``rays_per_chunk`` rays at a time of an
     ``[H, W]`` camera ray bundle (moved to ``device``), each tensor output put back on the bundle's
@@ -96,7 +96,7 @@ class NormalsOutput:
         self._camera_renders += 1
         try:
             chunk = render_rays_per_chunk(self.config.eval_num_rays_per_chunk, self.device)  # type: ignore[attr-defined]
-            return render_in_chunks(self.forward, camera_ray_bundle, chunk, self.device)  # type: ignore[attr-defined]
+            return render_in_chunks(self.forward, camera_ray_bundle, rays_per_chunk=chunk, device=self.device)  # type: ignore[attr-defined]
         finally:
             self._camera_renders -= 1
 

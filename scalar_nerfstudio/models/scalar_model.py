@@ -309,7 +309,7 @@ class ScalarModel(NormalsOutput, Model):
         else:  # rendering: one field pass over the occupied samples serves the occlusion test and the colour
             sample_ids, density, geo = self.visibility().visible_with_features(unit_positions, deltas)
         ray_ids = torch.div(sample_ids, num_samples, rounding_mode="floor")
-        rgb_points = self.field.colour(geo, directions, ray_ids, camera_indices)
+        rgb_points = self.field.colour(geo, directions, ray_ids, camera_indices=camera_indices)
         # Volume rendering in float32 also under autocast (bf16/fp16 cumulative sums drift).
         density, rgb_points = density.float(), rgb_points.float()
 
@@ -363,13 +363,14 @@ class ScalarModel(NormalsOutput, Model):
         num_rays = origins.shape[0]
         nears = ray_bundle.nears.reshape(-1, 1) if ray_bundle.nears is not None else origins.new_full((num_rays, 1), self.config.near_plane)
         fars = ray_bundle.fars.reshape(-1, 1) if ray_bundle.fars is not None else origins.new_full((num_rays, 1), self.config.far_plane)
-        origins, directions, nears, fars = neutralise_bad_rays(origins, directions, nears, fars)
+        origins, directions, nears, fars = neutralise_bad_rays(origins, directions, nears=nears, fars=fars)
         num_samples = self.config.num_samples_per_ray
         if self.training and self.occupancy.warming_up and self.config.warmup_samples_per_ray > 0:
             num_samples = min(self.config.warmup_samples_per_ray, num_samples)
-        t_starts, t_ends = sample_intervals(nears, fars, num_samples, jitter=jitter)
+        t_starts, t_ends = sample_intervals(nears, fars, num_samples=num_samples, jitter=jitter)
         t_mid = (t_starts + t_ends) / 2.0
-        unit_positions = contract_rays_to_unit_cube(origins, directions, t_mid, self.region_centre, self.region_radius)  # [R*S, 3]
+        unit_positions = contract_rays_to_unit_cube(origins, directions, t_mid, centre=self.region_centre,
+                                                    radius=self.region_radius)  # [R*S, 3]
         return RaySamples(origins, directions, fars, t_starts, t_ends, t_mid, unit_positions)
 
     def _ray_normals(self, samples: "RaySamples", sample_ids: Tensor, weights: Tensor) -> Tensor:

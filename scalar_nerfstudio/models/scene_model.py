@@ -34,7 +34,7 @@ from scalar_nerfstudio.engine.memory import HeapRelease
 from scalar_nerfstudio.fusion import ParsedFusionMode, parse_fusion_mode
 from scalar_nerfstudio.metrics import psnr
 from scalar_nerfstudio.models.block_fit import EncodingFit
-from scalar_nerfstudio.models.block_selection import blocks_for
+from scalar_nerfstudio.models.block_selection import BlockRegions, blocks_for
 from scalar_nerfstudio.models.block_start import (
     BLOCK_INITS,
     MIN_REGION_RADIUS,
@@ -175,6 +175,7 @@ class ScalarSceneModel(NormalsOutput, Model):
                 model.field.decoder.requires_grad_(False)
         # Which blocks have started training (their decoder was initialised); saved in checkpoints.
         self.register_buffer("blocks_started", torch.zeros(self.split.num_blocks, dtype=torch.bool))
+        # The blocks' regions (not in checkpoints); :meth:`renderer` passes them on as one :class:`BlockRegions`.
         self.register_buffer(
             "block_centres", torch.tensor([b.centre for b in self.split.blocks], dtype=torch.float32), persistent=False
         )
@@ -187,8 +188,8 @@ class ScalarSceneModel(NormalsOutput, Model):
 
     def _new_block_model(self, index: int) -> ScalarModel:
         """Block ``index``'s model, freshly initialised (its own frame, or the global one)."""
-        return new_block_model(self.config, self._block_capacities.get(index), self.split.blocks[index], self.block_init,
-                               self.scene_box, self._num_block_images[index])
+        return new_block_model(self.config, capacity=self._block_capacities.get(index), block=self.split.blocks[index],
+                               block_init=self.block_init, scene_box=self.scene_box, num_images=self._num_block_images[index])
 
     # -------------------------------------------------------------- checkpoint layout
     #: Where the pipeline keeps this model in its state dict (nerfstudio's ``Pipeline._model``).
@@ -283,17 +284,18 @@ class ScalarSceneModel(NormalsOutput, Model):
         if bool(self.blocks_started[block]):
             return None
         fresh = self._new_block_model(block).to(self.blocks_started.device)
-        self.store.install(block, fresh.state_dict(), f"block {block} (fresh)", evictable=False)
+        self.store.install(block, fresh.state_dict(), what=f"block {block} (fresh)", evictable=False)
         del fresh
         model = self.blocks[str(block)]
         images = self.split.blocks[block].image_indices
-        start_block(model, self.global_model, images, self.decoder_mode, self.block_init, self.config.seed_block_occupancy)
+        start_block(model, self.global_model, image_indices=images, decoder_mode=self.decoder_mode, block_init=self.block_init,
+                    seed_occupancy=self.config.seed_block_occupancy)
         fit = None
         if self.block_init == "fitted":
             fit = fit_block(
-                model, self.global_model, images,
-                None if self.block_observation is None else self.block_observation[block : block + 1],
-                self.block_centres[block], float(self.block_radii[block]), seed=block,
+                model, self.global_model, image_indices=images,
+                observation=None if self.block_observation is None else self.block_observation[block : block + 1],
+                centre=self.block_centres[block], radius=float(self.block_radii[block]), seed=block,
                 steps=self.config.block_fit_steps, points_per_step=self.config.block_fit_points,
             )
         self.blocks_started[block] = True
@@ -343,8 +345,9 @@ class ScalarSceneModel(NormalsOutput, Model):
             observed_blocks_only=config.observed_blocks_only,
         )
         return FusedRenderer(
-            self.global_model, self.resident_block, lambda block: self.blocks[str(block)], settings,
-            self.block_centres, self.block_radii, self.block_observation, self.rendered_models, self.rays_rendered_by_block,
+            self.global_model, block_model=self.resident_block, block_shell=lambda block: self.blocks[str(block)], settings=settings,
+            regions=BlockRegions(self.block_centres, self.block_radii, self.block_observation),
+            rendered_models=self.rendered_models, rays_rendered_by_block=self.rays_rendered_by_block,
         )
 
     def get_outputs(self, ray_bundle: RayBundle) -> Dict[str, Tensor]:
@@ -353,15 +356,15 @@ class ScalarSceneModel(NormalsOutput, Model):
         (:meth:`FusedRenderer.render` with the current fusion mode and the started blocks)."""
         normals = self.normals_wanted()
         mode = self.fusion_mode
-        return self.renderer().render(ray_bundle, mode, self._blocks_for(mode), normals)
+        return self.renderer().render(ray_bundle, mode, self._blocks_for(mode), normals=normals)
 
     @torch.no_grad()
     def select_rays(
-        self, mode: ParsedFusionMode, block_ids: List[int], ray_bundle: RayBundle, global_outputs: Optional[Dict[str, Tensor]] = None
+        self, mode: ParsedFusionMode, block_ids: List[int], ray_bundle: RayBundle, *, global_outputs: Optional[Dict[str, Tensor]] = None
     ) -> Tuple[Tensor, Optional[Tensor]]:
         """Which block renders which ray: ``([K', R] bool, [K', R] region scores or None)``
         (:func:`~scalar_nerfstudio.models.block_selection.select_rays`)."""
-        return self.renderer().select_rays(mode, block_ids, ray_bundle, global_outputs)
+        return self.renderer().select_rays(mode, block_ids, ray_bundle, global_outputs=global_outputs)
 
     _winner_colours = staticmethod(winner_colours)
 

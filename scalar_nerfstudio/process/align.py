@@ -87,7 +87,8 @@ def _level_fit(centres: np.ndarray, enu: np.ndarray, up: np.ndarray) -> tuple:
     return sim, keep, horizontal, vertical
 
 
-def capture_frame(names: Sequence[str], camera_to_world_cv: np.ndarray, gps: Dict[str, np.ndarray], gps_origin_from: Optional[Sequence[np.ndarray]] = None) -> CaptureFrame:
+def capture_frame(names: Sequence[str], camera_to_world_cv: np.ndarray, gps: Dict[str, np.ndarray], *,
+                  gps_origin_from: Optional[Sequence[np.ndarray]] = None) -> CaptureFrame:
     """Choose the capture's frame for a reconstruction.
 
     Args:

@@ -150,7 +150,7 @@ def umeyama(source: np.ndarray, target: np.ndarray, with_scale: bool = True) -> 
     return Similarity(scale, rotation, translation)
 
 
-def robust_umeyama(source: np.ndarray, target: np.ndarray, rounds: int = 3, factor: float = 3.0) -> Tuple[Similarity, np.ndarray]:
+def robust_umeyama(source: np.ndarray, target: np.ndarray, *, rounds: int = 3, factor: float = 3.0) -> Tuple[Similarity, np.ndarray]:
     """:func:`umeyama`, then refit without pairs whose residual exceeds ``factor`` x the median
     residual (GPS fixes that jumped), ``rounds`` times.
 

@@ -117,7 +117,8 @@ def write_ply(path: Path, points: np.ndarray, colours: np.ndarray) -> None:
         handle.write(vertex.tobytes())
 
 
-def transforms_json(names: Sequence[str], camera_to_world_cv: np.ndarray, intrinsics: dict, frame: CaptureFrame, image_ids: Sequence[int]) -> dict:
+def transforms_json(names: Sequence[str], camera_to_world_cv: np.ndarray, *, intrinsics: dict, frame: CaptureFrame,
+                    image_ids: Sequence[int]) -> dict:
     """nerfstudio's transforms.json (OPENCV camera; OpenGL camera axes, as nerfstudio's COLMAP converter
     writes them) of cameras already in the capture's frame."""
     poses = np.array(camera_to_world_cv, dtype=np.float64)
@@ -142,6 +143,7 @@ def transforms_json(names: Sequence[str], camera_to_world_cv: np.ndarray, intrin
 def write_scene(
     output: Path,
     photos_folder: Path,
+    *,
     names: Sequence[str],
     camera_to_world_cv: np.ndarray,
     image_ids: Sequence[int],
@@ -176,7 +178,8 @@ def write_scene(
         with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
             list(pool.map(one, names))
         write_ply(staging / "sparse_pc.ply", sim.apply(points), colours)
-        atomic_write_text(staging / "transforms.json", json.dumps(transforms_json(names, poses, intrinsics, frame, image_ids), indent=2) + "\n")
+        transforms = transforms_json(names, poses, intrinsics=intrinsics, frame=frame, image_ids=image_ids)
+        atomic_write_text(staging / "transforms.json", json.dumps(transforms, indent=2) + "\n")
         _publish(staging, output, ["images", *(f"images_{f}" for f in factors), "sparse_pc.ply", "transforms.json"])
     finally:
         shutil.rmtree(staging, ignore_errors=True)

@@ -156,7 +156,7 @@ def _run_in_thread(function: Callable[[], object], tick: Optional[Callable[[], N
     return result.get("value")
 
 
-def extract_features(workspace: Workspace, photos: PhotoSet, options: SfmOptions, advance: Callable[[int], None]) -> None:
+def extract_features(workspace: Workspace, photos: PhotoSet, *, options: SfmOptions, advance: Callable[[int], None]) -> None:
     """SIFT on every photo not yet in the database, :data:`_EXTRACT_CHUNK` photos per call; one
     camera (OPENCV, focal from EXIF when it has one) is shared by all photos."""
     with pycolmap.Database.open(workspace.database) as database:
@@ -212,7 +212,7 @@ def _pair_generator(matching: str, options: SfmOptions, database):
     return generator(_pairing_options(matching, options), database)
 
 
-def match_features(workspace: Workspace, matching: str, options: SfmOptions, tick: Optional[Callable[[], None]] = None) -> None:
+def match_features(workspace: Workspace, matching: str, *, options: SfmOptions, tick: Optional[Callable[[], None]] = None) -> None:
     """Match and geometrically verify the pairs of ``matching`` (pairs already matched are skipped)."""
     matcher = pycolmap.FeatureMatchingOptions()
     matcher.num_threads = options.num_threads
@@ -230,7 +230,8 @@ def verified_pairs(workspace: Workspace, min_inliers: int = 15) -> int:
     return sum(1 for geometry in geometries if len(geometry.inlier_matches) >= min_inliers)
 
 
-def map_photos(workspace: Workspace, photos: PhotoSet, options: SfmOptions, on_image: Callable[[int], None], tick: Optional[Callable[[], None]] = None) -> pycolmap.Reconstruction:
+def map_photos(workspace: Workspace, photos: PhotoSet, *, options: SfmOptions, on_image: Callable[[int], None],
+               tick: Optional[Callable[[], None]] = None) -> pycolmap.Reconstruction:
     """Incremental mapping; the largest reconstruction is written to ``sparse/0``.
 
     Raises:

@@ -119,7 +119,7 @@ def default_camera_poses(num_images: int, seed: int = 0) -> np.ndarray:
     return np.stack(poses)
 
 
-def write_scene(out_dir: Path, num_images: int = 40, width: int = 160, height: int = 120, seed: int = 0) -> Path:
+def write_scene(out_dir: Path, *, num_images: int = 40, width: int = 160, height: int = 120, seed: int = 0) -> Path:
     """Render the courtyard from ``num_images`` cameras and write ``transforms.json`` + ``images/``.
 
     Returns:

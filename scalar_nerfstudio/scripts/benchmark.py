@@ -59,10 +59,12 @@ def main(config: BenchmarkConfig) -> Dict[str, Any]:
     started = time.time()
     results = run_variants(config, variants, notes)
     machine_probe["after"] = hash_grid_speed(**probe_size)
-    report = write_report(config, results, notes, command, started, machine_probe)  # first without the picture: a failed render loses no table
+    report = write_report(config, results, notes=notes, command=command, started=started,
+                          machine_probe=machine_probe)  # first without the picture: a failed render loses no table
     view = write_heldout_view(config, results)
     if view is not None:
-        report = write_report(config, results, notes, command, started, machine_probe, heldout_view=view)
+        report = write_report(config, results, notes=notes, command=command, started=started, machine_probe=machine_probe,
+                              heldout_view=view)
     print(results_table_text(output_dir))
     picture = f" and {view['file']}" if view is not None else ""
     print(f"written: {output_dir / 'results.md'}, results.json, 3 PNG plots{picture} ({(time.time() - started) / 60:.1f} min)")

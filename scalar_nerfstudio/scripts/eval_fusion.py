@@ -62,7 +62,8 @@ def evaluate(args: EvalFusionArgs) -> Dict[str, Dict[str, float]]:
         pipeline.model.config.selection_depth = args.selection_depth
     if args.max_images is not None and args.max_images < 1:
         raise SystemExit(f"--max-images {args.max_images}: must be >= 1")
-    return evaluate_fusion_modes(pipeline, args.modes, args.measure_selection, on_mode=_print_row, max_images=args.max_images)
+    return evaluate_fusion_modes(pipeline, args.modes, measure_selection=args.measure_selection, on_mode=_print_row,
+                                 max_images=args.max_images)
 
 
 def main(args: EvalFusionArgs) -> None:

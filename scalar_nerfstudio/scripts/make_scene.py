@@ -170,7 +170,7 @@ def _automatic_blocks_line(config, poses) -> str:
     if len(train) == 0:
         return "Automatic K: no training frame with every 8th held out."
     scale = layout_scale(train[:, :3, 3], -train[:, :3, 2], np.full(len(train), config.focal_px))
-    k = auto_num_blocks(scale, 19, len(train), 6, 8)
+    k = auto_num_blocks(scale, log2_hashmap_size=19, num_images=len(train), min_images_per_block=6, max_blocks=8)
     return f"scalar-nerf's automatic K for this capture (eval interval 8, T = 2^19): {k} (layout R = {scale.layout_pixels:.0f} px)."
 
 

@@ -119,7 +119,7 @@ def run(args: argparse.Namespace, err: Console) -> int:
         else:
             _, advance, _ = _stage(progress, f"features (SIFT, long side {args.max_image_size} px)", len(photos.names))
             clock = time.monotonic()
-            sfm.extract_features(workspace, photos, options, advance)
+            sfm.extract_features(workspace, photos, options=options, advance=advance)
             timings["features"] = time.monotonic() - clock
             stages["extracted"] = True
             workspace.write_stages(stages)
@@ -130,7 +130,7 @@ def run(args: argparse.Namespace, err: Console) -> int:
             pairs = sfm.count_pairs(workspace, matching, options)
             task, _, tick = _stage(progress, f"matching {pairs} pairs ({matching})", None)
             clock = time.monotonic()
-            sfm.match_features(workspace, matching, options, tick)
+            sfm.match_features(workspace, matching, options=options, tick=tick)
             timings["matching"] = time.monotonic() - clock
             progress.update(task, total=1, completed=1)
             stages["matched"] = [*stages["matched"], matching]
@@ -143,26 +143,28 @@ def run(args: argparse.Namespace, err: Console) -> int:
         else:
             _, advance, tick = _stage(progress, "mapping (photos registered)", len(photos.names))
             clock = time.monotonic()
-            reconstruction = sfm.map_photos(workspace, photos, options, on_image=advance, tick=tick)
+            reconstruction = sfm.map_photos(workspace, photos, options=options, on_image=advance, tick=tick)
             timings["mapping"] = time.monotonic() - clock
             stages["mapped"] = True
             workspace.write_stages(stages)
 
         model = sfm.to_sparse_model(reconstruction)
         gps = photos.gps_by_name()
-        frame = align.capture_frame(model.names, model.camera_to_world, gps, list(gps.values()) or None)
+        frame = align.capture_frame(model.names, model.camera_to_world, gps, gps_origin_from=list(gps.values()) or None)
         _, advance, _ = _stage(progress, "writing the scene", len(model.names))
         clock = time.monotonic()
         transforms = scene.write_scene(
-            args.output, photos.folder, model.names, model.camera_to_world, model.image_ids, model.intrinsics,
-            model.points, model.colours, frame, workers=workers, advance=advance,
+            args.output, photos.folder, names=model.names, camera_to_world_cv=model.camera_to_world, image_ids=model.image_ids,
+            intrinsics=model.intrinsics, points=model.points, colours=model.colours, frame=frame, workers=workers, advance=advance,
         )
         timings["writing"] = time.monotonic() - clock
-    _report(photos.names, model, frame, sfm.other_models(workspace), transforms, time.monotonic() - started, timings)
+    _report(photos.names, model, frame, others=sfm.other_models(workspace), transforms=transforms, seconds=time.monotonic() - started,
+            timings=timings)
     return 0
 
 
-def _report(all_names: List[str], model, frame: align.CaptureFrame, others: List[int], transforms: Path, seconds: float, timings: dict) -> None:
+def _report(all_names: List[str], model, frame: align.CaptureFrame, *, others: List[int], transforms: Path, seconds: float,
+            timings: dict) -> None:
     registered = set(model.names)
     missing = [name for name in all_names if name not in registered]
     share = 100.0 * len(registered) / len(all_names)

@@ -109,7 +109,8 @@ def train_blocks(args: TrainBlocksArgs, extra: List[str]) -> int:
         states = prepare_blocks(out, blocks, global_run.global_checkpoint)
         todo = [b for b, s in states.items() if s.status == "pending"]
         if todo:
-            train_pending(args.resources(), global_run, states, todo, args.max_retries, args.block_steps, extra)
+            train_pending(args.resources(), global_run, states=states, todo=todo, max_retries=args.max_retries,
+                          block_steps=args.block_steps, extra=extra)
         print(format_table(states))
         failed = [s for s in states.values() if s.status == "failed"]
         if failed:

@@ -49,7 +49,7 @@ def _value_noise(salt: int, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     return (a * (1 - fu) + b * fu) * (1 - fv) + (c * (1 - fu) + d * fu) * fv
 
 
-def facade_colour(town: Town, building: np.ndarray, face: np.ndarray, u: np.ndarray, v: np.ndarray, width: np.ndarray) -> np.ndarray:
+def facade_colour(town: Town, building: np.ndarray, face: np.ndarray, *, u: np.ndarray, v: np.ndarray, width: np.ndarray) -> np.ndarray:
     """Facade texture.
 
     Args:
@@ -163,7 +163,7 @@ def facade_colour(town: Town, building: np.ndarray, face: np.ndarray, u: np.ndar
     return colour * (1.0 - 0.28 * np.exp(-v / 0.6))[:, None]
 
 
-def roof_colour(town: Town, building: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+def roof_colour(town: Town, building: np.ndarray, *, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """[P] building index and roof point (x, y) -> [P, 3] roof albedo (gravel, seams, vents, coping)."""
     salt = town.texture_salt
     tone = (0.78 + 0.22 * _hash(salt + 20, np.floor(x / 0.05), np.floor(y / 0.05))) * (0.9 + 0.12 * _value_noise(salt + 21, x / 2.5, y / 2.5))

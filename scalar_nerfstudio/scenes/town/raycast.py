@@ -69,7 +69,8 @@ def _entry_axis(origins: np.ndarray, inverse: np.ndarray, lo: np.ndarray, hi: np
     return np.minimum(t0, t1).argmax(axis=1)
 
 
-def intersect_town(origins: np.ndarray, directions: np.ndarray, town: Town, chunk_rays: Optional[int] = None, min_t: float = 1e-6) -> TownHits:
+def intersect_town(origins: np.ndarray, directions: np.ndarray, town: Town, *, chunk_rays: Optional[int] = None,
+                   min_t: float = 1e-6) -> TownHits:
     """First hit of each ray with the ground (z = 0) or a building.
 
     Args:

@@ -29,7 +29,7 @@ def _shade(town: Town, origins: np.ndarray, directions: np.ndarray, hits: TownHi
         albedo[ground] = ground_colour(town, points[ground, 0], points[ground, 1])
     roofs = np.flatnonzero((hits.surface >= 0) & (hits.axis == 2))
     if len(roofs):
-        albedo[roofs] = roof_colour(town, hits.surface[roofs], points[roofs, 0], points[roofs, 1])
+        albedo[roofs] = roof_colour(town, hits.surface[roofs], x=points[roofs, 0], y=points[roofs, 1])
     walls = np.flatnonzero((hits.surface >= 0) & (hits.axis != 2))
     if len(walls):
         b = hits.surface[walls]
@@ -40,7 +40,7 @@ def _shade(town: Town, origins: np.ndarray, directions: np.ndarray, hits: TownHi
         u = p[rows, along] - town.lo[b, along]
         width = town.hi[b, along] - town.lo[b, along]
         face = ax * 2 + (hits.normal[walls, ax] > 0)
-        albedo[walls] = facade_colour(town, b, face, u, p[:, 2], width)
+        albedo[walls] = facade_colour(town, b, face, u=u, v=p[:, 2], width=width)
     light = 0.5 + 0.55 * np.clip(hits.normal @ SUN, 0.0, 1.0)
     surface_rgb = albedo * light[:, None]
     rgb[hit] = surface_rgb[hit]

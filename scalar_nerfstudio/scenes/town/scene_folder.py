@@ -164,7 +164,8 @@ def _prepare_output(out_dir: Path, overwrite: bool) -> None:
                 (out_dir / name).unlink()
 
 
-def write_town(out_dir: Path, config: Optional[TownConfig] = None, progress: bool = True, overwrite: bool = False, workers: int = 1) -> Path:
+def write_town(out_dir: Path, config: Optional[TownConfig] = None, *, progress: bool = True, overwrite: bool = False,
+               workers: int = 1) -> Path:
     """Generate the town, render every frame and write the nerfstudio scene (see the module docstring).
 
     Args:
