@@ -46,7 +46,7 @@ def load_run(run: Path) -> Tuple[Path, Any, Path]:
     """(run folder, its config, its newest checkpoint) for a run folder or its config.yml."""
     config_path = run_config_path(run)
     try:
-        config = load_run_config(config_path)
+        config = load_run_config(run)
         return config_path.parent, config, latest_checkpoint(config_path.parent, config)
     except RunError as error:
         raise AssembleError(str(error)) from None

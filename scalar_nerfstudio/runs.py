@@ -77,6 +77,32 @@ def load_run_config(run: Path) -> Any:
         return yaml.load(path.read_text(encoding="utf-8"), Loader=yaml.Loader)
     except RunSchemaError as error:
         raise RunSchemaError(f"{path}: {error}") from None
+    except (yaml.YAMLError, UnicodeDecodeError, AttributeError, TypeError, ImportError) as error:
+        # not YAML, or it names a class this installation lacks (another plugin's run, a broken file)
+        first_line = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+        raise RunError(f"{path} cannot be read as a nerfstudio run config ({first_line})") from None
+
+
+#: The methods whose runs hold a global model and blocks (an assembled run is a scalar-nerf run).
+SCALAR_METHODS = ("scalar-nerf", "scalar-nerf-block")
+
+
+def check_trained_run(run: Path, *, scalar_only: bool) -> Path:
+    """The config.yml of a run that ns-* verbs can load: it is there, it reads, it has a checkpoint
+    and, with ``scalar_only``, it is a scalar-nerf run; checked before anything is loaded or written.
+
+    Raises:
+        RunError: what is wrong, naming the file.
+    """
+    path = run_config_path(run)
+    config = load_run_config(path)
+    method = getattr(config, "method_name", None)
+    if scalar_only and method not in SCALAR_METHODS:
+        raise RunError(f"{path} is a run of {method or 'no known method'}, not of scalar-nerf")
+    if not hasattr(config, "relative_model_dir"):
+        raise RunError(f"{path} is not a nerfstudio trainer config")
+    latest_checkpoint(path.parent, config)
+    return path
 
 
 def save_run_config(config: Any, run_dir: Path) -> Path:

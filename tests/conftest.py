@@ -28,6 +28,7 @@ from filelock import FileLock
 from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.data.scene_box import SceneBox
 
+from prerequisites import CASTLE, apply_needs_markers, need_castle
 from scalar_nerfstudio.scenes.courtyard import write_scene
 from scalar_nerfstudio.runs import latest_checkpoint_step
 from scalar_nerfstudio.fields.scalar_field import ScalarFieldConfig
@@ -44,9 +45,6 @@ if XDIST_WORKER is not None:
     os.environ.setdefault("MKL_NUM_THREADS", os.environ["OMP_NUM_THREADS"])
     torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
 
-REPO = Path(__file__).resolve().parents[1]
-SHARED_DATA = REPO.parent / "shared" / "data"
-CASTLE = SHARED_DATA / "castle-P30"
 
 # A short run that fits the suite's budget on 2 cores (see README "Tests").
 TRAIN_STEPS = int(os.environ.get("SCALAR_TEST_TRAIN_STEPS", "200"))
@@ -57,6 +55,14 @@ T = TypeVar("T")
 #: Fixtures that hand a test a trained run: a test that asks for one is marked slow (it trains, or
 #: waits for the run to be trained) whether or not it says so itself.
 TRAINED_RUN_FIXTURES = frozenset({"full_run", "trained_castle_run", "auto_runs", "global_run"})
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    config.addinivalue_line("markers", "needs(what, present, provided_by): skip without it; fail under CI=true (prerequisites.py)")
+
+
+def pytest_runtest_setup(item: pytest.Item) -> None:
+    apply_needs_markers(item)
 
 
 @pytest.hookimpl(tryfirst=True)  # before ``-m "not slow"`` deselects
@@ -206,14 +212,10 @@ def castle_args() -> List[str]:
     return ["nerfstudio-data", "--downscale-factor", "4"]
 
 
-requires_castle = pytest.mark.skipif(not CASTLE.is_dir(), reason=f"castle-P30 not found at {CASTLE}")
-
-
 @pytest.fixture(scope="session")
 def trained_castle_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """Train the global model on castle-P30 (downscale 4) for TRAIN_STEPS steps; returns the run folder."""
-    if not CASTLE.is_dir():
-        pytest.skip(f"castle-P30 not found at {CASTLE}")
+    need_castle()
 
     def train(output_dir: Path) -> Path:
         command = ns_train_command(CASTLE, output_dir, "--max-num-iterations", str(TRAIN_STEPS), "--steps-per-save", str(TRAIN_STEPS), *castle_args())

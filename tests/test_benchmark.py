@@ -11,7 +11,7 @@ from unittest import mock
 
 import pytest
 
-from conftest import REPO
+from prerequisites import REPO
 from quality import eval_renders, load_pipeline
 from scalar_nerfstudio.benchmarking.report import on_pareto_front
 from scalar_nerfstudio.benchmarking.schedule import variant_spec

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from prerequisites import CASTLE, need_castle
 from scalar_nerfstudio.blocks.split import (
     THIN_AXIS_FRACTION,
     BlockSplit,
@@ -20,13 +21,11 @@ from scalar_nerfstudio.blocks.split import (
     split_cameras,
 )
 
-CASTLE = Path("/work/shared/data/castle-P30/transforms.json")
 
 
 def _castle() -> tuple[np.ndarray, list[str]]:
-    if not CASTLE.exists():
-        pytest.skip(f"{CASTLE} not available")
-    frames = json.loads(CASTLE.read_text())["frames"]
+    need_castle()
+    frames = json.loads((CASTLE / "transforms.json").read_text())["frames"]
     centres = np.array([np.asarray(f["transform_matrix"], dtype=np.float64)[:3, 3] for f in frames])
     return centres, [Path(f["file_path"]).name for f in frames]
 

@@ -9,7 +9,7 @@ import json
 import math
 import sys
 from pathlib import Path
-from typing import Dict, List, Optional
+from typing import Dict, List
 
 import numpy as np
 import pytest
@@ -17,8 +17,10 @@ import torch
 import yaml
 from nerfstudio.cameras.rays import RayBundle
 
-from conftest import BLOCK_STEPS, trained_block_tensors, tiny_trainer, CASTLE, NUM_BLOCKS, requires_castle
-from scalar_nerfstudio.blocks.split import load_blocks_json, save_blocks_json, split_cameras
+from conftest import BLOCK_STEPS, NUM_BLOCKS, tiny_trainer, trained_block_tensors
+from fake_runs import fake_run
+from prerequisites import CASTLE, requires_castle
+from scalar_nerfstudio.blocks.split import load_blocks_json, split_cameras
 from scalar_nerfstudio.runs import RUN_SCHEMA_VERSION, latest_checkpoint_step
 from scalar_nerfstudio.method_configs import scalar_nerf
 
@@ -250,22 +252,6 @@ def test_block_tables_train_at_the_block_encoder_rate(scene: Path, tmp_path: Pat
 # ------------------------------------------------------------- assembling (assembly.py), in-process
 
 
-def _fake_run(folder: Path, state: Dict[str, torch.Tensor], only_block: Optional[int] = None) -> Path:
-    """A run folder with a config.yml, the fake split's blocks.json and one checkpoint of ``state``."""
-    from scalar_nerfstudio.atomic_io import atomic_torch_save
-    from scalar_nerfstudio.runs import save_run_config
-
-    config = copy.deepcopy(scalar_nerf.config)
-    config.output_dir, config.experiment_name, config.pipeline.only_block = folder.parent, "scene", only_block
-    (folder / "nerfstudio_models").mkdir(parents=True)
-    centres = np.stack([np.linspace(-1, 1, 8), np.zeros(8), np.zeros(8)], axis=1)
-    save_blocks_json(split_cameras(centres, 2, aabb_scale=(1.2, 1.2, 1.2)), folder / "blocks.json", [f"{i}.png" for i in range(8)])
-    config.pipeline.run_plan = (folder / "blocks.json").resolve() if only_block is None else None
-    save_run_config(config, folder)
-    atomic_torch_save({"step": 27, "pipeline": state}, folder / "nerfstudio_models" / "step-000000027.ckpt")
-    return folder
-
-
 def test_assemble_takes_each_block_from_its_run_and_keeps_blocks_in_files(tmp_path: Path) -> None:
     """The global run's finished block 0 (in its block file) and block 1 from a block run become one
     run: both started, their weights in the new run's block_models/, the checkpoint's block tensors
@@ -275,10 +261,10 @@ def test_assemble_takes_each_block_from_its_run_and_keeps_blocks_in_files(tmp_pa
     from scalar_nerfstudio.runs import block_model_path, block_models_dir, load_run_config
 
     empty = torch.empty(0)
-    global_run = _fake_run(tmp_path / "global", {"_model.global_model.w": torch.ones(2), "_model.blocks.0.t": empty,
+    global_run = fake_run(tmp_path / "global", {"_model.global_model.w": torch.ones(2), "_model.blocks.0.t": empty,
                                                  "_model.blocks.1.t": empty, "_model.blocks_started": torch.tensor([True, False])})
     save_block_file(block_model_path(block_models_dir(global_run), 0), 0, {"t": torch.full((3,), 2.0)})
-    block_run = _fake_run(tmp_path / "block1", {"_model.global_model.w": torch.ones(2), "_model.blocks.1.t": torch.full((3,), 5.0),
+    block_run = fake_run(tmp_path / "block1", {"_model.global_model.w": torch.ones(2), "_model.blocks.1.t": torch.full((3,), 5.0),
                                                 "_model.blocks_started": torch.tensor([False, True])}, only_block=1)
     run = assemble(global_run, [block_run], tmp_path / "assembled")
     state = torch.load(run / "nerfstudio_models" / "step-000000027.ckpt", weights_only=True)["pipeline"]

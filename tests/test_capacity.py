@@ -12,9 +12,9 @@ from hypothesis import strategies as st
 
 from scalar_nerfstudio.blocks.capacity import auto_num_blocks, block_capacity, layout_scale
 from scalar_nerfstudio.scenes.courtyard import look_at
-from conftest import CASTLE, SHARED_DATA, tiny_trainer
+from conftest import tiny_trainer
+from prerequisites import CASTLE, FOX, SCENES, needs
 
-FOX = SHARED_DATA / "fox"
 
 
 def _orbit(num: int, radius: float, elevation_deg: float) -> np.ndarray:
@@ -106,7 +106,7 @@ def _parsed(scene: Path, downscale: int):
     return NerfstudioDataParserConfig(data=scene, downscale_factor=downscale, eval_mode="interval", eval_interval=8).setup().get_dataparser_outputs("train")
 
 
-@pytest.mark.skipif(not (CASTLE.is_dir() and FOX.is_dir()), reason="castle-P30 / fox not found in ../shared/data")
+@needs(f"castle-P30 and fox ({CASTLE.parent})", CASTLE.is_dir() and FOX.is_dir(), provided_by=SCENES)
 def test_real_scenes_fox_one_block_castle_several() -> None:
     """The issue's examples, through nerfstudio's dataparser (the training frame and focal lengths)."""
     from scalar_nerfstudio.pipeline import parsed_layout_scale

@@ -16,7 +16,8 @@ import pytest
 import torch
 import yaml
 
-from conftest import TRAIN_STEPS, free_port, requires_castle
+from conftest import TRAIN_STEPS, free_port
+from prerequisites import requires_castle
 from scalar_nerfstudio.atomic_io import PARTIAL_SUFFIX, atomic_torch_save
 from scalar_nerfstudio.runs import latest_checkpoint_step
 

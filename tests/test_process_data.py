@@ -12,7 +12,6 @@ consistent features to place the cameras.
 from __future__ import annotations
 
 import contextlib
-import importlib.util
 import io
 import json
 import math
@@ -25,14 +24,14 @@ import numpy as np
 import pytest
 from PIL import ExifTags, Image, TiffImagePlugin
 
+from prerequisites import has_module, need, requires_pycolmap
 from scalar_nerfstudio.scenes.courtyard import DEFAULT_BOXES, look_at, render_rays
 from scalar_nerfstudio.process import geo
 from scalar_nerfstudio.process.export_frame import read_transform
 from scalar_nerfstudio.process.photos import read_photo
 from scalar_nerfstudio.scripts import process_data
 
-HAS_PYCOLMAP = importlib.util.find_spec("pycolmap") is not None
-needs_pycolmap = pytest.mark.skipif(not HAS_PYCOLMAP, reason="pycolmap is not installed (pip install 'scalar-nerfstudio[process]')")
+needs_pycolmap = requires_pycolmap
 
 #: Where the courtyard's world origin lies on Earth (lat, lon in degrees, altitude in m).
 GPS_ORIGIN = np.array([46.5197, 6.6323, 372.0])
@@ -138,8 +137,7 @@ def capture(tmp_path_factory) -> Tuple[Path, Dict[str, np.ndarray]]:
 @pytest.fixture(scope="module")
 def processed(capture, tmp_path_factory) -> Tuple[Path, str, float]:
     """(scene folder, stdout, seconds) of process-data on the capture (auto matching: spatial, GPS)."""
-    if not HAS_PYCOLMAP:
-        pytest.skip("pycolmap is not installed")
+    need("pycolmap", has_module("pycolmap"))
     scene = tmp_path_factory.mktemp("processed") / "scene"
     start = time.monotonic()
     code, out, err = _run("--images", str(capture[0]), "--output", str(scene))

@@ -8,7 +8,8 @@ import pytest
 import yaml
 from nerfstudio.utils.eval_utils import eval_setup
 
-from conftest import TRAIN_STEPS, requires_castle
+from conftest import TRAIN_STEPS
+from prerequisites import requires_castle
 from quality import mean_image_psnr
 
 

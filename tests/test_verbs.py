@@ -9,7 +9,6 @@ the cameras at full resolution: an automatic K decided again there differs from 
 from __future__ import annotations
 
 import json
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -21,6 +20,7 @@ import torch
 from PIL import Image
 
 from conftest import ns_eval, ns_train_command, run_dirs, viewer_page
+from prerequisites import has_tool, need
 from quality import FUSION_TOLERANCE_DB, TRAINED_MARGIN_DB, eval_renders, image_difference, load_pipeline, untrained_psnr
 from scalar_nerfstudio.blocks.plan import load_plan
 from scalar_nerfstudio.metrics import alexnet_weights_path
@@ -134,8 +134,7 @@ def test_ns_render_dataset_and_camera_path_write_the_runs_own_renders(auto_runs:
         (path,) = [p for p in rendered if p.stem == stem]
         assert render.shape[:2] == (36, 48), "rendered at the trained resolution"
         assert image_difference(path, render) < 1.0, f"{path.name} is not the run's render of that camera"
-    if shutil.which("ffmpeg") is None:
-        pytest.skip("ns-render camera-path needs ffmpeg (tools/setup-tests.sh installs it)")
+    need("ffmpeg (ns-render camera-path)", has_tool("ffmpeg"))
     camera_path = _camera_path(tmp_path / "camera_path.json")
     (frame,) = _ns_render("camera-path", run, tmp_path / "path", "--output-format", "images", "--image-format", "png",
                           "--camera-path-filename", str(camera_path))
@@ -146,8 +145,7 @@ def test_ns_render_dataset_and_camera_path_write_the_runs_own_renders(auto_runs:
 def test_ns_render_interpolate_and_spiral_write_their_frames(auto_runs: Dict[str, Path], name: str, verb: str, tmp_path: Path) -> None:
     """The trajectory verbs (the same frame writer as camera-path, checked against the run's render
     above): every frame of the trajectory at the asked size, not blank."""
-    if shutil.which("ffmpeg") is None:
-        pytest.skip("ns-render interpolate/spiral need ffmpeg (tools/setup-tests.sh installs it)")
+    need("ffmpeg (ns-render interpolate/spiral)", has_tool("ffmpeg"))
     extra = {
         "interpolate": ["--interpolation-steps", "1", "--pose-source", "train", "--downscale-factor", "4"],
         "spiral": ["--seconds", "1", "--frame-rate", "2", "--downscale-factor", "4"],

@@ -18,6 +18,7 @@ import torch
 import tyro
 
 from conftest import NUM_BLOCKS, free_port
+from prerequisites import needs
 from quality import FUSION_TOLERANCE_DB, TRAINED_MARGIN_DB, eval_renders, image_difference, load_pipeline, untrained_psnr
 from scalar_nerfstudio.fusion_eval import evaluate_fusion_modes, markdown_table
 from scalar_nerfstudio.blocks.palette import BLOCK_PALETTE, block_colour
@@ -212,7 +213,7 @@ def _settled(driver, viewport, timeout: float = 240.0) -> np.ndarray:
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(CHROMIUM is None or CHROMEDRIVER is None, reason="chromium/chromedriver not installed (tools/setup-tests.sh installs them)")
+@needs("chromium and chromedriver", CHROMIUM is not None and CHROMEDRIVER is not None)
 def test_browser_shows_a_render_that_changes_with_fusion(full_run: Path) -> None:
     from selenium import webdriver
     from selenium.webdriver.chrome.service import Service

@@ -81,10 +81,8 @@ class ScalarBlockTrainerConfig(ScalarTrainerConfig):
             raise RunError(f"the global phase of {run_dir} is not finished (its time budget's steps are not planned yet); train it first.")
         if step is None or global_steps is None or step + 1 < global_steps:
             done = 0 if step is None else step + 1
-            raise RunError(
-                f"the global phase of {run_dir} is not finished "
-                f"({done} of {global_steps} steps checkpointed); train it first."
-            )
+            planned = "" if global_steps is None else f" of {global_steps}"
+            raise RunError(f"the global phase of {run_dir} is not finished ({done}{planned} steps checkpointed); train it first.")
         try:
             num_blocks = load_blocks_json(blocks_json)[0].num_blocks
         except BlockSplitError as error:

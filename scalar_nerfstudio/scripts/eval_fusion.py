@@ -19,8 +19,11 @@ import tyro
 from nerfstudio.utils.eval_utils import eval_setup
 
 from scalar_nerfstudio.atomic_io import atomic_write_text
-from scalar_nerfstudio.fusion import FUSION_MODES
+from scalar_nerfstudio.fusion import FUSION_MODES, FusionModeError, parse_fusion_mode
 from scalar_nerfstudio.fusion_eval import evaluate_fusion_modes, markdown_table
+from scalar_nerfstudio.runs import RunError, check_trained_run
+
+PROG = "scalar-nerf-eval-fusion"
 
 __all__ = ["EvalFusionArgs", "entrypoint", "evaluate", "main", "markdown_table"]
 
@@ -49,19 +52,36 @@ def _print_row(mode: str, row: Dict[str, float]) -> None:
     print(f"{mode:>12}: " + ", ".join(f"{k} {v:.4g}" for k, v in row.items()), flush=True)
 
 
+def check_arguments(args: EvalFusionArgs) -> None:
+    """Refuse bad options and a run that cannot be evaluated, in one line before anything is loaded
+    or written (SystemExit, exit status 1)."""
+    for mode in args.modes:
+        try:
+            parse_fusion_mode(mode)
+        except FusionModeError as error:
+            raise SystemExit(f"{PROG}: --modes: {error}") from None
+    if not args.modes:
+        raise SystemExit(f"{PROG}: --modes: give at least one fusion mode")
+    if args.blocks_per_ray is not None and args.blocks_per_ray < 0:
+        raise SystemExit(f"{PROG}: --blocks-per-ray {args.blocks_per_ray}: must be >= 0 (0: every block)")
+    if args.max_images is not None and args.max_images < 1:
+        raise SystemExit(f"{PROG}: --max-images {args.max_images}: must be >= 1")
+    if args.output_dir.exists() and not args.output_dir.is_dir():
+        raise SystemExit(f"{PROG}: --output-dir {args.output_dir} is a file, not a folder")
+    try:
+        check_trained_run(args.load_config, scalar_only=True)
+    except RunError as error:
+        raise SystemExit(f"{PROG}: {error}") from None
+
+
 def evaluate(args: EvalFusionArgs) -> Dict[str, Dict[str, float]]:
     """Run the table; returns ``{mode: {"psnr", "ssim", ["lpips"], "ms_per_image", ...}}``."""
+    check_arguments(args)
     _, pipeline, _, _ = eval_setup(args.load_config, test_mode="test")
-    if not hasattr(pipeline.model, "set_fusion"):
-        raise SystemExit(f"{args.load_config} is not a scalar-nerf run")
     if args.blocks_per_ray is not None:
-        if args.blocks_per_ray < 0:
-            raise SystemExit(f"--blocks-per-ray {args.blocks_per_ray}: must be >= 0 (0: every block)")
         pipeline.model.config.blocks_per_ray = args.blocks_per_ray
     if args.selection_depth is not None:
         pipeline.model.config.selection_depth = args.selection_depth
-    if args.max_images is not None and args.max_images < 1:
-        raise SystemExit(f"--max-images {args.max_images}: must be >= 1")
     return evaluate_fusion_modes(pipeline, args.modes, measure_selection=args.measure_selection, on_mode=_print_row,
                                  max_images=args.max_images)
 

@@ -84,23 +84,28 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _refuse(parser: argparse.ArgumentParser, message: str) -> NoReturn:
+    parser.exit(1, f"{parser.prog}: error: {message}\n")
+
+
 def _check_output(parser: argparse.ArgumentParser, output: Path, overwrite: bool) -> None:
-    """Refuse an output that is a file, a non-empty folder (without --overwrite) or not writable."""
+    """Refuse an output that is a file, a non-empty folder (without --overwrite) or not writable
+    (exit status 1: the options are well formed, the folder is not usable)."""
     import os
 
     if output.exists() and not output.is_dir():
-        parser.error(f"--output {output} exists and is not a folder")
+        _refuse(parser, f"--output {output} exists and is not a folder")
     if output.is_dir():
         if any(output.iterdir()) and not overwrite:
-            parser.error(f"--output {output} is not empty (pass --overwrite to write into it)")
+            _refuse(parser, f"--output {output} is not empty (pass --overwrite to write into it)")
         if not os.access(output, os.W_OK | os.X_OK):
-            parser.error(f"--output {output} is not writable")
+            _refuse(parser, f"--output {output} is not writable")
         return
     parent = output.parent
     while not parent.exists() and parent != parent.parent:
         parent = parent.parent
     if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
-        parser.error(f"--output {output} cannot be created: {parent} is not a writable folder")
+        _refuse(parser, f"--output {output} cannot be created: {parent} is not a writable folder")
 
 
 def _option_message(error: ValueError) -> str:

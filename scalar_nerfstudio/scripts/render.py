@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Iterator, Optional, Union
 
 import tyro
@@ -18,6 +19,9 @@ from nerfstudio.scripts import render as ns_render
 from typing_extensions import Annotated
 
 from scalar_nerfstudio.fusion import FusionModeError, parse_fusion_mode
+from scalar_nerfstudio.runs import RunError, check_trained_run
+
+PROG = "scalar-nerf-render"
 
 
 @contextlib.contextmanager
@@ -46,12 +50,18 @@ def fusion_applied(fusion: Optional[str]) -> Iterator[None]:
         ns_render.eval_setup = original
 
 
-def _check(fusion: Optional[str]) -> None:
+def check_arguments(load_config: Path, fusion: Optional[str]) -> None:
+    """Refuse an unknown fusion, a run that cannot be loaded, and ``--fusion`` on a run of another
+    method, in one line before anything is loaded or written (SystemExit, exit status 1)."""
     if fusion is not None:
         try:
             parse_fusion_mode(fusion)
         except FusionModeError as error:
-            raise SystemExit(f"--fusion: {error}") from None
+            raise SystemExit(f"{PROG}: --fusion: {error}") from None
+    try:
+        check_trained_run(load_config, scalar_only=fusion is not None)
+    except RunError as error:
+        raise SystemExit(f"{PROG}: {error}") from None
 
 
 @dataclass
@@ -62,7 +72,7 @@ class _FusionOption:
     """nearest, nearest-guarded, nearest-idw, global, surface, idw, global-only or block:K (default: the run's configured fusion)."""
 
     def main(self) -> None:
-        _check(self.fusion)
+        check_arguments(self.load_config, self.fusion)  # type: ignore[attr-defined]
         with fusion_applied(self.fusion):
             super().main()  # type: ignore[misc]
 

@@ -168,7 +168,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         return train_blocks(args, extra)
     except TrainBlocksError as error:
         print(f"{PROG}: {error}", file=sys.stderr)
-        return 2
+        return 1
 
 
 def entrypoint() -> None:
