@@ -21,11 +21,14 @@ import re
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict, Iterator, List, Optional, Tuple
+from typing import TYPE_CHECKING, Dict, Iterator, List, Optional, Tuple
 
 from scalar_nerfstudio.atomic_io import atomic_write_text
 from scalar_nerfstudio.distributed import TrainBlocksError
 from scalar_nerfstudio.runs import ASSEMBLED_FROM_NAME, CONFIG_NAME, RunError, latest_checkpoint_step, load_run_config, run_config_path
+
+if TYPE_CHECKING:
+    from scalar_nerfstudio.engine.block_trainer import ScalarBlockTrainerConfig
 
 DONE_MARKER = "DONE.json"
 LOCK_FILE = ".train-blocks.lock"
@@ -47,12 +50,14 @@ class GlobalRun:
     block_steps: int
 
 
-def check_global_run(run: Path, blocks: Optional[Tuple[int, ...]]) -> Tuple[GlobalRun, List[int]]:
-    """Check ``run`` as ``ns-train scalar-nerf-block`` does; returns it and the blocks to train."""
-    from scalar_nerfstudio.blocks.split import load_blocks_json
-    from scalar_nerfstudio.method_configs import scalar_nerf_block
+def check_global_run(run: Path, blocks: Optional[Tuple[int, ...]], *, block_method: "ScalarBlockTrainerConfig") -> Tuple[GlobalRun, List[int]]:
+    """Check ``run`` as ``ns-train scalar-nerf-block`` does; returns it and the blocks to train.
 
-    config = copy.deepcopy(scalar_nerf_block.config)
+    ``block_method`` is the ``scalar-nerf-block`` method's config (copied here, never changed).
+    """
+    from scalar_nerfstudio.blocks.split import load_blocks_json
+
+    config = copy.deepcopy(block_method)
     config.global_run = Path(run)
     config.block = 0
     try:

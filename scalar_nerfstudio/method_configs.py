@@ -1,7 +1,7 @@
 """nerfstudio method specifications: ``scalar-nerf`` and ``scalar-nerf-block``.
 
-Installed as ``scalar_nerfstudio.method_configs`` and registered through the
-``nerfstudio.method_configs`` entry points in ``pyproject.toml``.
+Registered through the ``nerfstudio.method_configs`` entry points in ``pyproject.toml``. Only nerfstudio
+and the command lines (``scripts/``) import this module: it sits above the rest of the package.
 """
 
 from __future__ import annotations
