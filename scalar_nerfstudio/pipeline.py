@@ -11,7 +11,7 @@ from __future__ import annotations
 import gc
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Dict, List, Literal, Optional, Tuple, Type
+from typing import Any, Dict, List, Literal, Optional, Tuple, Type
 
 import torch
 import tyro
@@ -29,7 +29,7 @@ from scalar_nerfstudio.blocks.split import BlockSplit, BlockSplitError, load_blo
 from scalar_nerfstudio.data.datamanager import ScalarDataManagerConfig, camera_centres, camera_layout, training_image_names
 from scalar_nerfstudio.data.depth import scene_radius_logged
 from scalar_nerfstudio.engine.contract import Phase
-from scalar_nerfstudio.engine.device import keep_freed_memory
+from scalar_nerfstudio.engine.process_settings import apply_process_settings
 from scalar_nerfstudio.models.scene_model import BlockInit, DecoderMode, ScalarSceneModel, ScalarSceneModelConfig
 from scalar_nerfstudio.pipeline_text import format_eval_metrics, format_plan_report
 from scalar_nerfstudio.runs import RUN_SCHEMA_VERSION, block_models_dir
@@ -122,6 +122,12 @@ class ScalarPipelineConfig(VanillaPipelineConfig):
     scalar_schema_version: tyro.conf.Suppress[int] = RUN_SCHEMA_VERSION
     """Version of this config's layout in config.yml (runs.py: an older run is upgraded on load)."""
 
+    def setup(self, **kwargs: Any) -> Any:
+        """The pipeline (nerfstudio passes ``device``, ``test_mode`` ...), built after the process-wide
+        settings for its device (``engine/process_settings.py``): every ns- verb loads a run through here."""
+        apply_process_settings(kwargs.get("device", "cpu"))
+        return super().setup(**kwargs)
+
     def plan_settings(self) -> PlanSettings:
         """The options a block plan is decided from (blocks/plan.py)."""
         return PlanSettings(
@@ -178,8 +184,6 @@ class ScalarPipeline(VanillaPipeline):
         Pipeline.__init__(self)
         if world_size > 1:
             raise NotImplementedError("scalar-nerf trains on one device; use scalar-nerf-block to spread blocks over machines")
-        if torch.device(device).type == "cpu":
-            keep_freed_memory()  # training, evaluation, rendering and the viewer all reuse freed tensor memory
         self.config = config
         self.test_mode = test_mode
         self.world_size = world_size

@@ -12,7 +12,8 @@ import sys
 import pytest
 import torch
 
-from scalar_nerfstudio.engine.device import GLIBC_MALLOC_ENV, AutoMachineConfig, keep_freed_memory, resolve_device_type, resolve_machine
+from scalar_nerfstudio.engine.allocator import GLIBC_MALLOC_ENV, keep_freed_memory
+from scalar_nerfstudio.engine.device import AutoMachineConfig, resolve_device_type, resolve_machine
 from scalar_nerfstudio.engine.trainer import ScalarTrainer
 
 
@@ -70,7 +71,7 @@ def test_device_and_mixed_precision_follow_the_machine(monkeypatch, cuda: bool, 
 
 
 def test_onednn_kernel_cache_is_limited_unless_the_user_set_it(monkeypatch: pytest.MonkeyPatch) -> None:
-    from scalar_nerfstudio.engine.device import ONEDNN_CACHE_ENV, limit_onednn_kernel_cache
+    from scalar_nerfstudio.engine.process_settings import ONEDNN_CACHE_ENV, limit_onednn_kernel_cache
 
     monkeypatch.delenv(ONEDNN_CACHE_ENV, raising=False)
     assert limit_onednn_kernel_cache() and os.environ[ONEDNN_CACHE_ENV] == "0"
@@ -80,7 +81,6 @@ def test_onednn_kernel_cache_is_limited_unless_the_user_set_it(monkeypatch: pyte
 
 _REALLOCATE = """
 import resource, torch
-from scalar_nerfstudio.engine.device import keep_freed_memory
 assert keep_freed_memory()
 def faults(): return resource.getrusage(resource.RUSAGE_SELF).ru_minflt
 for _ in range(2):  # 64 MB, allocated and freed: the heap grows to hold it
@@ -109,3 +109,23 @@ def test_freed_tensor_memory_is_reused_without_new_page_faults() -> None:
 def test_malloc_settings_of_the_user_are_left_alone(name: str, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv(name, "1")
     assert not keep_freed_memory()
+
+
+def test_the_process_settings_are_made_where_nerfstudio_enters_the_package(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Every ns- verb builds the trainer or the pipeline through its config's setup(): the settings are
+    made there, before the object is built, for the device it is built on."""
+    import scalar_nerfstudio.engine.trainer as trainer_module
+    import scalar_nerfstudio.pipeline as pipeline_module
+    from scalar_nerfstudio.method_configs import scalar_nerf
+
+    calls = []
+    for module in (trainer_module, pipeline_module):
+        monkeypatch.setattr(module, "apply_process_settings", lambda device: calls.append(("settings", str(device))))
+    pipeline_config = copy.deepcopy(scalar_nerf.config.pipeline)
+    pipeline_config._target = lambda config, **kwargs: calls.append(("built", kwargs["device"]))
+    pipeline_config.setup(device="cpu", test_mode="test")
+    trainer_config = copy.deepcopy(scalar_nerf.config)
+    trainer_config.machine.device_type = "cpu"
+    trainer_config._target = lambda config, **kwargs: calls.append(("built", "trainer"))
+    trainer_config.setup(local_rank=0, world_size=1)
+    assert calls == [("settings", "cpu"), ("built", "cpu"), ("settings", "cpu"), ("built", "trainer")]

@@ -16,9 +16,6 @@ from typing import Any, Literal
 import torch
 from nerfstudio.configs.base_config import MachineConfig
 
-# glibc malloc's settings live in engine/allocator.py; pipeline.py and the tests import these two from here.
-from scalar_nerfstudio.engine.allocator import GLIBC_MALLOC_ENV, keep_freed_memory  # noqa: F401
-
 DeviceType = Literal["auto", "cpu", "cuda", "mps"]
 
 
@@ -42,23 +39,3 @@ def resolve_machine(config: Any) -> None:
     device = resolve_device_type(config.machine.device_type)
     config.machine.device_type = device
     config.mixed_precision = bool(config.mixed_precision) and device == "cuda"
-
-
-
-#: oneDNN's cache of compiled CPU kernels, one entry per distinct shape (default capacity 1024). A
-#: training step's decoder runs on as many samples as survive empty-space skipping: a new shape almost
-#: every step, so the cache fills with kernels that are never reused (measured: a 300-step town run
-#: grew from 1.5 to 3.3 GB resident with the default, 1.95 GB with 0, at the same speed within 5 %).
-ONEDNN_CACHE_ENV = "ONEDNN_PRIMITIVE_CACHE_CAPACITY"
-
-
-def limit_onednn_kernel_cache(capacity: int = 0) -> bool:
-    """Set oneDNN's kernel cache capacity for this process unless the user set it (the environment
-    variable wins). It takes effect only if no oneDNN kernel has been created yet: call it where a
-    process starts training. Returns True when this call set it."""
-    import os
-
-    if ONEDNN_CACHE_ENV in os.environ:
-        return False
-    os.environ[ONEDNN_CACHE_ENV] = str(int(capacity))
-    return True

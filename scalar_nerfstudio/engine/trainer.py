@@ -20,7 +20,8 @@ from scalar_nerfstudio.blocks.plan import save_plan
 from scalar_nerfstudio.config_checks import OptionError, check_block_counts, check_block_plan, check_options, check_output_dir
 from scalar_nerfstudio.data.validation import SceneError, scan_scene
 from scalar_nerfstudio.engine.contract import PhasedPipeline
-from scalar_nerfstudio.engine.device import limit_onednn_kernel_cache, resolve_machine
+from scalar_nerfstudio.engine.device import resolve_device_type, resolve_machine
+from scalar_nerfstudio.engine.process_settings import apply_process_settings
 from scalar_nerfstudio.engine.preview import write_preview
 from scalar_nerfstudio.engine.report import format_report, scene_model_report, write_report
 from scalar_nerfstudio.engine.pace import BLOCK_CALIBRATION_STEPS, REPLAN_AT, TrainingClock, calibration_start, eta_line, pace_is_due
@@ -65,6 +66,11 @@ class ScalarTrainerConfig(TrainerConfig):
         """Built from config.yml (YAML, as every nerfstudio command loads a run) or unpickled: a run
         written by an older version is upgraded first (``runs.upgrade_run_config``)."""
         self.__dict__.update(upgrade_run_config(state))
+
+    def setup(self, **kwargs: Any) -> Any:
+        """The trainer, built after the process-wide settings for its device (``engine/process_settings.py``)."""
+        apply_process_settings(resolve_device_type(self.machine.device_type))
+        return super().setup(**kwargs)
 
     def set_timestamp(self) -> None:
         """Check the options and the scene, then resume into the run folder that ``load_dir`` belongs
@@ -144,7 +150,6 @@ class ScalarTrainer(Trainer):
 
     def __init__(self, config: ScalarTrainerConfig, local_rank: int = 0, world_size: int = 1) -> None:
         resolve_machine(config)  # device "auto" and mixed precision (CUDA only), before nerfstudio reads them
-        limit_onednn_kernel_cache()  # before the first CPU kernel: memory must not grow with the steps
         super().__init__(config, local_rank, world_size)
         self.thread_governor = ThreadGovernor(enabled=config.adapt_threads and config.machine.device_type == "cpu")
         self.training_clock = TrainingClock()
