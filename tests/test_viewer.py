@@ -23,6 +23,7 @@ from quality import FUSION_TOLERANCE_DB, TRAINED_MARGIN_DB, eval_renders, image_
 from scalar_nerfstudio.fusion_eval import evaluate_fusion_modes, markdown_table
 from scalar_nerfstudio.blocks.palette import BLOCK_PALETTE, block_colour
 from scalar_nerfstudio.blocks.split import split_cameras
+from scalar_nerfstudio.models.fused_render import winner_colours
 from scalar_nerfstudio.viewer import BlockOverlay, CoarseFirstRender, FinishedRunPanel, box_edges, fusion_options
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
@@ -152,10 +153,10 @@ def test_dropdown_switches_fusion_and_block_colours(full_run: Path) -> None:
     single = model.get_outputs_for_camera(camera)
     assert set(single["block_winner"].unique().long().tolist()) == {1}
     # every pixel of block_colour is the colour of the block that won it
-    block1_colour = model._winner_colours(torch.tensor([[1.0]], device=model.device))[0]
+    block1_colour = winner_colours(torch.tensor([[1.0]], device=model.device))[0]
     colours = single["block_colour"].reshape(-1, 3)
     assert torch.allclose(colours, block1_colour.expand_as(colours))
-    assert not torch.allclose(block1_colour, model._winner_colours(torch.tensor([[-1.0]], device=model.device))[0])
+    assert not torch.allclose(block1_colour, winner_colours(torch.tensor([[-1.0]], device=model.device))[0])
 
 
 # ------------------------------------------------------------------------ the browser

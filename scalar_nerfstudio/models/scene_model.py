@@ -47,7 +47,7 @@ from scalar_nerfstudio.models.block_start import (
     start_block,
 )
 from scalar_nerfstudio.models.block_store import BlockStore
-from scalar_nerfstudio.models.fused_render import FusedRenderer, FusionSettings, winner_colours
+from scalar_nerfstudio.models.fused_render import FusedRenderer, FusionSettings
 from scalar_nerfstudio.models.normals import NormalsOutput
 from scalar_nerfstudio.models.scalar_model import ScalarModel, ScalarModelConfig, near_far_collider
 
@@ -365,8 +365,6 @@ class ScalarSceneModel(NormalsOutput, Model):
         """Which block renders which ray: ``([K', R] bool, [K', R] region scores or None)``
         (:func:`~scalar_nerfstudio.models.block_selection.select_rays`)."""
         return self.renderer().select_rays(mode, block_ids, ray_bundle, global_outputs=global_outputs)
-
-    _winner_colours = staticmethod(winner_colours)
 
     def _blocks_for(self, mode: ParsedFusionMode) -> List[int]:
         """Blocks that may render for ``mode`` (none for global-only or before any block has trained)."""
