@@ -17,10 +17,16 @@ import tempfile
 import warnings
 from dataclasses import replace
 from pathlib import Path
-from typing import Any, Optional, TypeGuard
+from typing import TYPE_CHECKING, Any, Optional, TypeGuard
 
 from scalar_nerfstudio.blocks.length import LengthError, parse_duration
 from scalar_nerfstudio.fields.decoder_kernels import kernel_conflict
+
+if TYPE_CHECKING:  # the configs checked here (they import this module's callers, not this module)
+    from scalar_nerfstudio.data.datamanager import ScalarDataManagerConfig
+    from scalar_nerfstudio.engine.trainer import ScalarTrainerConfig
+    from scalar_nerfstudio.models.scene_model import ScalarSceneModelConfig
+    from scalar_nerfstudio.pipeline import ScalarPipelineConfig
 
 __all__ = ["OptionError", "check_block_plan", "check_options", "check_output_dir", "check_pipeline_options", "check_trainer_options"]
 
@@ -47,7 +53,7 @@ def _is_int(value: Any) -> TypeGuard[int]:
 
 
 def _at_least(owner: Any, name: str, low: int, *, why: str = "", prefix: str = "--pipeline.", optional: bool = False) -> None:
-    value = getattr(owner, name, None)
+    value = getattr(owner, name)
     if value is None and optional:
         return
     if not _is_int(value) or value < low:
@@ -55,7 +61,7 @@ def _at_least(owner: Any, name: str, low: int, *, why: str = "", prefix: str = "
 
 
 def _bounds(owner: Any, name: str, low: int, high: Optional[int] = None, prefix: str = "--pipeline.") -> None:
-    value = getattr(owner, name, None)
+    value = getattr(owner, name)
     if value is None:
         return
     pair = tuple(value) if isinstance(value, (tuple, list)) else ()
@@ -64,7 +70,7 @@ def _bounds(owner: Any, name: str, low: int, high: Optional[int] = None, prefix:
         raise OptionError(f"{_flag(name, prefix)} {_show(value)}: must be two whole numbers LOW HIGH with {low} <= LOW <= HIGH{top}.")
 
 
-def check_pipeline_options(pipeline: Any, num_train_images: Optional[int] = None, num_frames: Optional[int] = None) -> None:
+def check_pipeline_options(pipeline: ScalarPipelineConfig, num_train_images: Optional[int] = None, num_frames: Optional[int] = None) -> None:
     """Check a :class:`ScalarPipelineConfig`'s options; pure (reads nothing from disk).
 
     Args:
@@ -75,11 +81,11 @@ def check_pipeline_options(pipeline: Any, num_train_images: Optional[int] = None
     Raises:
         OptionError: naming the first bad option, its value and what to do.
     """
-    num_blocks = getattr(pipeline, "num_blocks", None)
+    num_blocks = pipeline.num_blocks
     if num_blocks is not None and (not _is_int(num_blocks) or num_blocks < 1):
         raise OptionError(f"--pipeline.num-blocks {_show(num_blocks)}: must be at least 1 (1: the global model only), "
                           f"or leave the option out for the automatic number of blocks.")
-    scale = getattr(pipeline, "aabb_scale", (1.0, 1.0, 1.0))
+    scale = pipeline.aabb_scale
     values = list(scale) if isinstance(scale, (tuple, list)) else []
     if len(values) != 3 or not all(isinstance(s, (int, float)) and math.isfinite(s) and s >= 1.0 for s in values):
         raise OptionError(f"--pipeline.aabb-scale {_show(scale)}: must be three finite numbers >= 1 (x y z scale of each block's "
@@ -88,94 +94,91 @@ def check_pipeline_options(pipeline: Any, num_train_images: Optional[int] = None
     _at_least(pipeline, "max_auto_blocks", 1)
     _at_least(pipeline, "auto_min_images_per_block", 1)
     _at_least(pipeline, "min_overlap_images", 0, why=" (0: blocks are not grown to overlap)")
-    seed = getattr(pipeline, "split_seed", 0)
+    seed = pipeline.split_seed
     if not _is_int(seed) or not 0 <= seed < 2**32:
         raise OptionError(f"--pipeline.split-seed {_show(seed)}: must be a whole number in [0, 2^32).")
     _at_least(pipeline, "global_steps", 0, why=" (or left out: planned from the capture or --pipeline.time-budget)", optional=True)
     _at_least(pipeline, "block_steps", 0, why=" (or left out: planned from the capture or --pipeline.time-budget)", optional=True)
-    if getattr(pipeline, "global_steps", 1) == 0 and (getattr(pipeline, "block_steps", 1) == 0 or not getattr(pipeline, "train_blocks", True)):
+    if pipeline.global_steps == 0 and (pipeline.block_steps == 0 or not pipeline.train_blocks):
         raise OptionError("--pipeline.global-steps 0 leaves nothing to train (the blocks get no steps either); give the global "
                           "phase (--pipeline.global-steps) or the blocks (--pipeline.block-steps, --pipeline.train-blocks True) some steps.")
     _check_length(pipeline)
-    restart = getattr(pipeline, "one_model_restart", 0.0)
+    restart = pipeline.one_model_restart
     if isinstance(restart, bool) or not isinstance(restart, (int, float)) or not (math.isfinite(restart) and 0.0 <= restart < 1.0):
         raise OptionError(f"--pipeline.one-model-restart {_show(restart)}: must be a number in [0, 1) (the share of a one-model "
                           f"run after which its learning rates restart; 0: no restart).")
     _bounds(pipeline, "block_log2_hashmap_bounds", 1, MAX_LOG2_HASHMAP_SIZE)
     _bounds(pipeline, "block_max_resolution_bounds", 1)
-    log2_size = getattr(pipeline, "block_log2_hashmap_size", None)
+    log2_size = pipeline.block_log2_hashmap_size
     if log2_size is not None and (not _is_int(log2_size) or not 1 <= log2_size <= MAX_LOG2_HASHMAP_SIZE):
         raise OptionError(f"--pipeline.block-log2-hashmap-size {_show(log2_size)}: must be a whole number from 1 to "
                           f"{MAX_LOG2_HASHMAP_SIZE}, or left out to size each block automatically.")
     _at_least(pipeline, "block_max_resolution", 1, optional=True)
-    if getattr(pipeline, "block_init", None) == "fitted" and getattr(pipeline, "decoder_mode", None) == "independent":
+    if pipeline.block_init == "fitted" and pipeline.decoder_mode == "independent":
         raise OptionError("--pipeline.block-init fitted with --pipeline.decoder-mode independent: a block's table is fitted to the "
                           "global model through the global decoder, which an independent decoder does not copy; use "
                           "--pipeline.decoder-mode finetune (or frozen), or --pipeline.block-init fresh.")
-    _check_model(getattr(pipeline, "model", None))
-    _check_data(getattr(pipeline, "datamanager", None))
+    _check_model(pipeline.model)
+    _check_data(pipeline.datamanager)
     if num_train_images is not None:
         check_block_counts(pipeline, num_train_images, num_frames)
 
 
-def _check_length(pipeline: Any) -> None:
+def _check_length(pipeline: ScalarPipelineConfig) -> None:
     """The options a run's length is planned from (blocks/length.py)."""
-    budget = getattr(pipeline, "time_budget", None)
+    budget = pipeline.time_budget
     if budget is not None:
         try:
             parse_duration(budget)
         except LengthError as error:
             raise OptionError(f"--pipeline.time-budget {budget}: {error}.") from None
-        if getattr(pipeline, "global_steps", None) is not None and getattr(pipeline, "block_steps", None) is not None:
+        if pipeline.global_steps is not None and pipeline.block_steps is not None:
             raise OptionError(f"--pipeline.time-budget {budget} with --pipeline.global-steps and --pipeline.block-steps: the budget "
                               "plans the steps; leave one of the step counts out (or the budget).")
     for name in ("rays_per_pixel", "block_rays_per_pixel"):
-        value = getattr(pipeline, name, 1.0)
+        value = getattr(pipeline, name)
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value > 0):
             raise OptionError(f"{_flag(name)} {_show(value)}: must be a number > 0 (how often a phase draws each pixel on average).")
     _at_least(pipeline, "block_workers", 1, why=" (blocks that train at once, on other processes or machines)")
 
 
-def check_block_counts(pipeline: Any, num_train_images: int, num_frames: Optional[int] = None) -> None:
+def check_block_counts(pipeline: ScalarPipelineConfig, num_train_images: int, num_frames: Optional[int] = None) -> None:
     """The options that depend on the scene: blocks and images per block against the training images.
 
     Raises:
         OptionError: naming the option, its value and the scene's image count.
     """
-    splits = getattr(pipeline, "blocks_json", None) is None and getattr(pipeline, "only_block", None) is None
+    splits = pipeline.blocks_json is None and pipeline.only_block is None
     if not splits:
         return
-    num_blocks = getattr(pipeline, "num_blocks", None)
+    num_blocks = pipeline.num_blocks
     images = f"{num_train_images} training image{'s' if num_train_images != 1 else ''}"
     if num_frames is not None and num_frames != num_train_images:
         images += f" ({num_frames} frames, less those held out for evaluation)"
     if num_blocks is not None and num_blocks > num_train_images:
         raise OptionError(f"--pipeline.num-blocks {num_blocks}: the scene has only {images}, and each block needs at least one; "
                           f"use at most {num_train_images} blocks, or leave the option out for the automatic number.")
-    min_images = getattr(pipeline, "min_images_per_block", 1)
+    min_images = pipeline.min_images_per_block
     if min_images > num_train_images:
         raise OptionError(f"--pipeline.min-images-per-block {min_images}: the scene has only {images}; "
                           f"use at most {num_train_images}.")
 
 
-def _check_model(model: Any) -> None:
-    if model is None:
-        return
-    field = getattr(model, "field", None)
-    if field is not None:
-        prefix = "--pipeline.model.field."
-        size = getattr(field, "log2_hashmap_size", 19)
-        if not _is_int(size) or not 1 <= size <= MAX_LOG2_HASHMAP_SIZE:
-            raise OptionError(f"{prefix}log2-hashmap-size {_show(size)}: must be a whole number from 1 to {MAX_LOG2_HASHMAP_SIZE}.")
-        for name in ("num_levels", "features_per_level", "base_resolution", "hidden_dim"):
-            _at_least(field, name, 1, prefix=prefix)
-        base, finest = getattr(field, "base_resolution", 1), getattr(field, "max_resolution", 1)
-        if not _is_int(finest) or finest < base:
-            raise OptionError(f"{prefix}max-resolution {_show(finest)}: must be a whole number >= --pipeline.model.field.base-resolution ({base}).")
-        conflict = kernel_conflict(getattr(field, "cpu_decoder_kernel", "auto"), getattr(field, "decoder_precision", "auto"),
-                                   getattr(field, "fused_decoder", True))
-        if conflict is not None:
-            raise OptionError(f"{prefix}cpu-decoder-kernel: {conflict}; change one of the two.")
+def _check_model(model: ScalarSceneModelConfig) -> None:
+    field = model.field
+    prefix = "--pipeline.model.field."
+    size = field.log2_hashmap_size
+    if not _is_int(size) or not 1 <= size <= MAX_LOG2_HASHMAP_SIZE:
+        raise OptionError(f"{prefix}log2-hashmap-size {_show(size)}: must be a whole number from 1 to {MAX_LOG2_HASHMAP_SIZE}.")
+    for name in ("num_levels", "features_per_level", "base_resolution", "hidden_dim"):
+        _at_least(field, name, 1, prefix=prefix)
+    base, finest = field.base_resolution, field.max_resolution
+    if not _is_int(finest) or finest < base:
+        raise OptionError(f"{prefix}max-resolution {_show(finest)}: must be a whole number >= --pipeline.model.field.base-resolution ({base}).")
+    conflict = kernel_conflict(field.cpu_decoder_kernel, field.decoder_precision,
+                               field.fused_decoder)
+    if conflict is not None:
+        raise OptionError(f"{prefix}cpu-decoder-kernel: {conflict}; change one of the two.")
     prefix = "--pipeline.model."
     _at_least(model, "eval_num_rays_per_chunk", 1, prefix=prefix, optional=True)  # None: by device
     for name in ("num_samples_per_ray", "occupancy_resolution", "occupancy_update_every"):
@@ -184,41 +187,39 @@ def _check_model(model: Any) -> None:
     _at_least(model, "render_occupancy_resolution", 0, why=" (0: rendering uses the training grid)", prefix=prefix, optional=True)
     _at_least(model, "blocks_per_ray", 0, why=" (0: every block on every ray)", prefix=prefix, optional=True)
     for name in ("idw_gamma", "nearest_idw_gamma"):
-        gamma = getattr(model, name, None)
+        gamma = getattr(model, name)
         if gamma is not None and (isinstance(gamma, bool) or not isinstance(gamma, (int, float)) or not (math.isfinite(gamma) and gamma >= 0)):
             raise OptionError(f"{_flag(name, prefix)} {_show(gamma)}: must be a finite number >= 0 (0: equal weights).")
-    guard = getattr(model, "guard_accumulation", None)
+    guard = model.guard_accumulation
     if guard is not None and (isinstance(guard, bool) or not isinstance(guard, (int, float)) or not (math.isfinite(guard) and 0 < guard <= 1)):
         raise OptionError(f"{_flag('guard_accumulation', prefix)} {_show(guard)}: must be a number in (0, 1] (an accumulated opacity).")
     _at_least(model, "block_fit_steps", 0, why=" (0: a fitted block keeps its fresh table)", prefix=prefix, optional=True)
     _at_least(model, "block_fit_points", 1, prefix=prefix, optional=True)
-    near, far = getattr(model, "near_plane", 0.0), getattr(model, "far_plane", 1.0)
+    near, far = model.near_plane, model.far_plane
     if not (isinstance(near, (int, float)) and isinstance(far, (int, float)) and 0 <= near < far):
         raise OptionError(f"--pipeline.model.near-plane {_show(near)} / --pipeline.model.far-plane {_show(far)}: need 0 <= near < far.")
-    radius = getattr(model, "scene_radius", None)
+    radius = model.scene_radius
     if radius is not None and (isinstance(radius, bool) or not isinstance(radius, (int, float)) or not (math.isfinite(radius) and radius > 0)):
         raise OptionError(f"--pipeline.model.scene-radius {_show(radius)}: must be a finite number > 0 (None: unbounded).")
 
 
-def _check_data(datamanager: Any) -> None:
-    if datamanager is None:
-        return
+def _check_data(datamanager: ScalarDataManagerConfig) -> None:
     prefix = "--pipeline.datamanager."
     for name in ("train_num_rays_per_batch", "eval_num_rays_per_batch"):
         _at_least(datamanager, name, 1, prefix=prefix)
-    background = getattr(datamanager, "alpha_background", (1.0, 1.0, 1.0))
+    background = datamanager.alpha_background
     colour = list(background) if isinstance(background, (tuple, list)) else []
     if len(colour) != 3 or not all(isinstance(c, (int, float)) and 0.0 <= c <= 1.0 for c in colour):
         raise OptionError(f"{prefix}alpha-background {_show(background)}: must be three numbers R G B in [0, 1].")
-    budget = getattr(datamanager, "image_cache_mib", None)
+    budget = datamanager.image_cache_mib
     if budget is not None and not (isinstance(budget, (int, float)) and math.isfinite(budget) and budget > 0):
         raise OptionError(f"{prefix}image-cache-mib {_show(budget)}: must be a number of MiB > 0, or left out for a quarter "
                           f"of the available memory.")
     _at_least(datamanager, "image_resample_every", 1, prefix=prefix, optional=True)
-    scale = getattr(datamanager, "camera_res_scale_factor", 1.0)
+    scale = datamanager.camera_res_scale_factor
     if not (isinstance(scale, (int, float)) and math.isfinite(scale) and scale > 0):
         raise OptionError(f"{prefix}camera-res-scale-factor {_show(scale)}: must be a number > 0.")
-    parser = getattr(datamanager, "dataparser", None)
+    parser = datamanager.dataparser
     if parser is None:
         return
     factor = getattr(parser, "downscale_factor", None)
@@ -240,7 +241,7 @@ def _check_data(datamanager: Any) -> None:
             raise OptionError(f"--{name.replace('_', '-')} {_show(value)} (nerfstudio-data): must be a number > 0.")
 
 
-def check_trainer_options(config: Any) -> None:
+def check_trainer_options(config: ScalarTrainerConfig) -> None:
     """Check the trainer-level options (step counts) of a ``ScalarTrainerConfig``; pure."""
     _at_least(config, "max_num_iterations", 0, why=" (0: train every phase)", prefix="--")
     _at_least(config, "steps_per_save", 1, prefix="--")
@@ -248,7 +249,7 @@ def check_trainer_options(config: Any) -> None:
         _at_least(config, name, 0, why=" (0: never)", prefix="--")
 
 
-def check_options(config: Any, num_train_images: Optional[int] = None, num_frames: Optional[int] = None) -> None:
+def check_options(config: ScalarTrainerConfig, num_train_images: Optional[int] = None, num_frames: Optional[int] = None) -> None:
     """:func:`check_trainer_options` and :func:`check_pipeline_options` of a ``ScalarTrainerConfig``; pure."""
     check_trainer_options(config)
     check_pipeline_options(config.pipeline, num_train_images, num_frames)
@@ -257,7 +258,7 @@ def check_options(config: Any, num_train_images: Optional[int] = None, num_frame
 # ----------------------------------------------------------------------------------- block plan
 
 
-def check_block_plan(pipeline: Any, data: Path) -> None:
+def check_block_plan(pipeline: ScalarPipelineConfig, data: Path) -> None:
     """Decide the block plan of the parsed training cameras once, as the pipeline will, and turn a
     split that cannot work (a block left with fewer than ``min_images_per_block`` images) into an
     :class:`OptionError` before anything is written.
@@ -265,11 +266,11 @@ def check_block_plan(pipeline: Any, data: Path) -> None:
     Skipped (the pipeline reports it later) when the run reuses a split or plan, or when the
     dataparser is not one this check knows how to run without side effects.
     """
-    if any(getattr(pipeline, name, None) is not None for name in ("blocks_json", "only_block", "run_plan")):
+    if any(value is not None for value in (pipeline.blocks_json, pipeline.only_block, pipeline.run_plan)):
         return
-    plan_settings = getattr(pipeline, "plan_settings", None)
-    parser_config = getattr(getattr(pipeline, "datamanager", None), "dataparser", None)
-    if plan_settings is None or parser_config is None or getattr(parser_config, "load_3D_points", False):
+    plan_settings = pipeline.plan_settings
+    parser_config = pipeline.datamanager.dataparser
+    if getattr(parser_config, "load_3D_points", False):  # any dataparser: only some have the option
         return
     try:
         from nerfstudio.utils.rich_utils import CONSOLE
