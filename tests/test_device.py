@@ -81,6 +81,7 @@ def test_onednn_kernel_cache_is_limited_unless_the_user_set_it(monkeypatch: pyte
 
 _REALLOCATE = """
 import resource, torch
+from scalar_nerfstudio.engine.allocator import keep_freed_memory
 assert keep_freed_memory()
 def faults(): return resource.getrusage(resource.RUSAGE_SELF).ru_minflt
 for _ in range(2):  # 64 MB, allocated and freed: the heap grows to hold it

@@ -240,11 +240,11 @@ def test_a_forced_kernel_the_cpu_lacks_falls_back_with_one_warning(monkeypatch: 
 
 def test_ns_train_refuses_contradictory_kernel_settings_up_front() -> None:
     from scalar_nerfstudio.config_checks import OptionError, check_pipeline_options
-    from scalar_nerfstudio.models.scalar_model import ScalarModelConfig
+    from scalar_nerfstudio.models.scene_model import ScalarSceneModelConfig
     from scalar_nerfstudio.pipeline import ScalarPipelineConfig
 
     def pipeline(**field: object) -> ScalarPipelineConfig:
-        return ScalarPipelineConfig(model=ScalarModelConfig(field=ScalarFieldConfig(**field)))
+        return ScalarPipelineConfig(model=ScalarSceneModelConfig(field=ScalarFieldConfig(**field)))
 
     check_pipeline_options(pipeline(cpu_decoder_kernel="avx2"))  # fine whatever the CPU (it falls back where it must)
     with pytest.raises(OptionError, match=r"--pipeline.model.field.cpu-decoder-kernel: .*'avx2' multiplies in float32"):
