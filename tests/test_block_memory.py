@@ -152,6 +152,7 @@ def test_only_started_blocks_hold_weights_and_a_stored_block_leaves_memory(tmp_p
 
 
 def test_rendering_loads_blocks_from_their_files_bounded_and_gives_the_same_image(tmp_path: Path) -> None:
+    torch.manual_seed(0)  # the two models start from the same global model, whatever ran before in this process
     reference = _model(max_resident_blocks=NUM_BLOCKS, fusion="nearest")  # rays from x = -0.8 .. 0.8: every block
     reference.attach_block_store(tmp_path / "unused")
     torch.manual_seed(1)
@@ -160,6 +161,7 @@ def test_rendering_loads_blocks_from_their_files_bounded_and_gives_the_same_imag
         with torch.no_grad():
             for parameter in reference.phase_model(block).field.parameters():
                 parameter.add_(torch.randn(parameter.shape) * 0.5)
+    torch.manual_seed(0)
     model = _model(max_resident_blocks=2, fusion="nearest")
     _train_blocks(model, tmp_path)
     rays = _rays()
