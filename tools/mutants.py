@@ -230,7 +230,7 @@ MUTANTS: Tuple[Mutant, ...] = (
     Mutant(
         name="contraction-unbounded", path="scalar_nerfstudio/fields/scalar_field.py",
         old="(2.0 - inverse) * inverse)", new="(2.0 - inverse))",
-        why="the contraction does not divide by |x|: far points leave the ball (grids, observation, torch sampling)",
+        why="the contraction does not divide by the norm of x: far points leave the ball (grids, observation, torch sampling)",
         tests=node_ids("model_components", "test_contraction_matches_mipnerf360_and_stays_in_the_ball")
         + node_ids("block_selection", "test_unit_cube_to_world_inverts_the_contraction"),
     ),

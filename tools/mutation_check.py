@@ -21,7 +21,7 @@ kills nothing. The exit status is 1 when the baseline fails or any mutant surviv
     python tools/mutation_check.py --only guard-never-fires idw-exponent-sign
     python tools/mutation_check.py --dry-run              # apply, compile and restore each mutant; run no test
     python tools/mutation_check.py --list [--markdown]    # the table of mutants
-    python tools/mutation_check.py --markdown --report docs/testing-mutants.md   # results as a markdown table
+    python tools/mutation_check.py --markdown --report outputs/mutants.md   # results as a markdown table
 
 Standard library only. Python's bytecode cache cannot keep a mutant: pytest runs with PYTHONDONTWRITEBYTECODE=1,
 a mutant's modification time differs from the original's, and the original's is restored with its bytes.
