@@ -34,6 +34,9 @@ from scalar_nerfstudio.blocks.length import format_duration, parse_duration
 __all__ = ["CURVE_VARIANTS", "budget_specs", "curve_table", "run_curves"]
 
 #: The variants a budget trains (see the module's text).
+#: The minutes the time axis is labelled at (those within the plotted range).
+NICE_MINUTES: Tuple[float, ...] = (0.25, 0.5, 1, 2, 3, 5, 10, 15, 30, 60, 120, 240, 480)
+
 CURVE_VARIANTS: Tuple[str, ...] = ("ngp-t", "ngp-t2", "auto", "auto-parallel")
 #: Training steps between a budget run's checkpoints (what ``--resume`` continues from).
 SAVE_EVERY_STEPS = 1000
@@ -148,24 +151,32 @@ def _plots(specs: List[Dict[str, Any]], results: Dict[str, Dict[str, Any]], outp
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from matplotlib.ticker import FuncFormatter
+    from matplotlib.ticker import FixedLocator, FuncFormatter, NullFormatter
 
     written = []
     for metric in ("psnr", "ssim"):
         figure, axis = plt.subplots(figsize=(7, 4.5))
+        minutes_seen: List[float] = []
         for variant in dict.fromkeys(s["variant"] for s in specs):
             points = sorted((wall_clock_s(s, results[s["name"]]), results[s["name"]]["final"][metric])
                             for s in specs if s["variant"] == variant and s["name"] in results)
-            if points:
-                axis.plot([p[0] / 60 for p in points], [p[1] for p in points], marker="o", label=variant)
-            for s in specs:  # each run's own evaluations on the way, faint
+            if not points:
+                continue
+            (line,) = axis.plot([p[0] / 60 for p in points], [p[1] for p in points], marker="o", label=variant)
+            minutes_seen += [p[0] / 60 for p in points]
+            for s in specs:  # each run's own evaluations on the way, faint, in its variant's colour
                 if s["variant"] == variant and s["name"] in results and variant != "auto-parallel":
                     curve = results[s["name"]]["curve"]
-                    axis.plot([p["train_s"] / 60 for p in curve], [p[metric] for p in curve], color="grey", alpha=0.3, linewidth=0.8)
+                    axis.plot([p["train_s"] / 60 for p in curve], [p[metric] for p in curve], color=line.get_color(),
+                              alpha=0.35, linewidth=0.9, marker=".", markersize=3)
+                    minutes_seen += [p["train_s"] / 60 for p in curve]
         axis.set_xscale("log")
-        minutes = FuncFormatter(lambda value, _: f"{value:g}")
-        axis.xaxis.set_major_formatter(minutes)
-        axis.xaxis.set_minor_formatter(minutes)
+        if minutes_seen:  # ticks at round minutes over the range shown, none between them
+            low, high = min(minutes_seen), max(minutes_seen)
+            ticks = [t for t in NICE_MINUTES if low / 1.5 <= t <= high * 1.5] or [round(high, 1)]
+            axis.xaxis.set_major_locator(FixedLocator(ticks))
+        axis.xaxis.set_major_formatter(FuncFormatter(lambda value, _: f"{value:g}"))
+        axis.xaxis.set_minor_formatter(NullFormatter())
         axis.set_xlabel("training wall-clock (min, log scale)")
         axis.set_ylabel(f"held-out {metric.upper()}")
         axis.grid(True, which="both", alpha=0.3)
