@@ -8,7 +8,6 @@ import os
 import shutil
 import subprocess
 import sys
-import textwrap
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
@@ -17,44 +16,13 @@ import pytest
 from scalar_nerfstudio.data.validation import SceneError, scan_scene
 
 from bad_scenes import CASES, broken_copy, truncated_jpeg
+from cli_driver import DRIVER
 from conftest import ns_train_command, run_dirs
 
 
 # ------------------------------------------------------------------------- ns-train, end to end
 
-# Runs `ns-train` once per job in forked children of one process that has imported nerfstudio once
-# (an ns-train start costs ~10 s of imports): each child runs nerfstudio's real entry point with its
-# own argv, stdout and stderr, and exits as the interpreter would (SystemExit message on stderr, a
-# traceback for any other exception).
-_DRIVER = textwrap.dedent(
-    """
-    import json, os, sys, traceback
-    from nerfstudio.scripts.train import entrypoint
-
-    for job in json.loads(sys.argv[1]):
-        sys.stdout.flush(); sys.stderr.flush()
-        pid = os.fork()
-        if pid == 0:
-            os.dup2(os.open(job["stdout"], os.O_WRONLY | os.O_CREAT | os.O_TRUNC), 1)
-            os.dup2(os.open(job["stderr"], os.O_WRONLY | os.O_CREAT | os.O_TRUNC), 2)
-            sys.argv = ["ns-train", *job["args"]]
-            code = 0
-            try:
-                entrypoint()
-            except SystemExit as exit:
-                code = exit.code if isinstance(exit.code, int) else (0 if exit.code is None else 1)
-                if not isinstance(exit.code, (int, type(None))):
-                    print(exit.code, file=sys.stderr)
-            except BaseException:
-                traceback.print_exc()
-                code = 1
-            sys.stdout.flush(); sys.stderr.flush()
-            os._exit(code)
-        _, status = os.waitpid(pid, 0)
-        with open(job["rc"], "w") as handle:
-            handle.write(str(os.waitstatus_to_exitcode(status)))
-    """
-)
+# Every case runs nerfstudio's real `ns-train` entry point, in one process that imported it once (cli_driver.py).
 
 #: A guard, so that a case the checks miss trains one step and ends instead of hanging in the viewer.
 _GUARD = ["--max-num-iterations", "1", "--vis", "tensorboard", "--viewer.quit-on-train-completion", "True"]
@@ -99,7 +67,7 @@ def ns_train_results(good_scene: Path, tmp_path_factory: pytest.TempPathFactory)
             outputs.mkdir()
             (outputs / "earlier-run.txt").write_text("an earlier run's file")
         args = ["scalar-nerf", "--data", str(scene), "--output-dir", str(outputs), *_GUARD, *extra]  # a dataparser comes last
-        jobs.append({"args": args, "stdout": str(folder / "out"), "stderr": str(folder / "err"), "rc": str(folder / "rc")})
+        jobs.append({"command": "ns-train", "args": args, "stdout": str(folder / "out"), "stderr": str(folder / "err"), "rc": str(folder / "rc")})
         results[name] = {"folder": folder, "outputs": outputs}
 
     for case in CLI_SCENE_CASES:
@@ -113,7 +81,7 @@ def ns_train_results(good_scene: Path, tmp_path_factory: pytest.TempPathFactory)
     file_output.write_text("not a folder")
     add("output under a file", good_scene, [], outputs=file_output / "outputs")
     read_only = root / "read-only"
-    command = [sys.executable, "-c", _DRIVER]
+    command = [sys.executable, "-c", DRIVER]
     if _read_only_mount_works(read_only):
         add("read-only output", good_scene, [], outputs=read_only / "outputs")
         driver = f"mount -t tmpfs -o ro tmpfs '{read_only}' && exec \"$@\""

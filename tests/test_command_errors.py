@@ -10,7 +10,6 @@ import json
 import os
 import subprocess
 import sys
-import textwrap
 from importlib.metadata import entry_points
 from pathlib import Path
 from typing import Dict, List, Tuple
@@ -18,46 +17,12 @@ from typing import Dict, List, Tuple
 import pytest
 import torch
 
+from cli_driver import DRIVER
 from fake_runs import fake_run, foreign_run
 
-#: Each job runs one console script's entry point (as pip installed it) with its own argv, in a
-#: forked child of one process that imported torch and nerfstudio once (a command's start costs
-#: seconds of imports); the child exits as the interpreter would (SystemExit message on stderr, a
-#: traceback for any other exception). test_a_command_started_afresh_prints_one_line runs one as a
-#: process of its own, with what its imports print.
-_DRIVER = textwrap.dedent(
-    """
-    import json, os, sys, traceback
-    from importlib.metadata import entry_points
-    import scalar_nerfstudio.scripts  # what every console script imports first
-    import torch, nerfstudio.utils.eval_utils  # the shared, slow imports, once
-
-    scripts = {ep.name: ep for ep in entry_points(group="console_scripts")}
-    for job in json.loads(sys.argv[1]):
-        sys.stdout.flush(); sys.stderr.flush()
-        pid = os.fork()
-        if pid == 0:
-            os.dup2(os.open(job["stdout"], os.O_WRONLY | os.O_CREAT | os.O_TRUNC), 1)
-            os.dup2(os.open(job["stderr"], os.O_WRONLY | os.O_CREAT | os.O_TRUNC), 2)
-            os.chdir(job["cwd"])
-            sys.argv = [job["command"], *job["args"]]
-            code = 0
-            try:
-                scripts[job["command"]].load()()
-            except SystemExit as exit:
-                code = exit.code if isinstance(exit.code, int) else (0 if exit.code is None else 1)
-                if not isinstance(exit.code, (int, type(None))):
-                    print(exit.code, file=sys.stderr)
-            except BaseException:
-                traceback.print_exc()
-                code = 1
-            sys.stdout.flush(); sys.stderr.flush()
-            os._exit(code)
-        _, status = os.waitpid(pid, 0)
-        with open(job["rc"], "w") as handle:
-            handle.write(str(os.waitstatus_to_exitcode(status)))
-    """
-)
+#: Each case runs the console script's entry point as pip installed it (cli_driver.py: one process imports
+#: the commands once, each case runs in a forked child). test_a_command_started_afresh_prints_one_line runs
+#: one as a process of its own, with what its imports print.
 
 #: name: (command, its arguments, what its one line must say). Paths are relative to the work folder
 #: that the ``work`` fixture fills; ``out/NAME`` is where a case would write, were it not refused.
@@ -117,7 +82,7 @@ def results(work: Path, tmp_path_factory: pytest.TempPathFactory) -> Dict[str, d
     jobs = [{"command": command, "args": args, "cwd": str(work), **{k: str(logs / f"{name}.{k}") for k in ("stdout", "stderr", "rc")}}
             for name, (command, args, _) in CASES.items()]
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    driver = subprocess.run([sys.executable, "-c", _DRIVER, json.dumps(jobs)], capture_output=True, text=True, timeout=600, env=env)
+    driver = subprocess.run([sys.executable, "-c", DRIVER, json.dumps(jobs)], capture_output=True, text=True, timeout=600, env=env)
     assert driver.returncode == 0, driver.stderr[-3000:]
     after = _digests(work)
     changed = sorted(k for k in set(before) | set(after) if before.get(k) != after.get(k))
