@@ -161,7 +161,8 @@ class ScalarPipelineConfig(VanillaPipelineConfig):
             return [Phase(self.only_block, 0, length.block_steps)]
         phases = [Phase(None, 0, length.global_steps)]
         if self.train_blocks if train_blocks is None else train_blocks:
-            phases += [Phase(k, length.global_steps + k * length.block_steps, length.block_steps) for k in range(num_blocks)]
+            for k in range(num_blocks):
+                phases.append(Phase(k, phases[-1].end_step, length.steps_of_block(k)))
         return phases
 
 

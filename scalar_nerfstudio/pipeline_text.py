@@ -52,7 +52,9 @@ def format_length(length: TrainingLength, phases: Sequence[Phase]) -> str:
     steps = phases[-1].end_step if phases else 0
     parts = [f"global {length.global_steps} steps"] if any(p.block is None for p in phases) else []
     if blocks:
-        parts.append(f"{len(blocks)} block{'s' if len(blocks) != 1 else ''} x {length.block_steps} steps")
+        counts = sorted({p.num_steps for p in blocks})
+        each = f"x {counts[0]}" if len(counts) == 1 else f"of {counts[0]}-{counts[-1]}"
+        parts.append(f"{len(blocks)} block{'s' if len(blocks) != 1 else ''} {each} steps")
     shape = " + ".join(parts) + f" = {steps} steps"
     if length.source == "given":
         return f"training length: {shape} (as given)"

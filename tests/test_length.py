@@ -110,12 +110,27 @@ def test_the_blocks_are_planned_from_the_time_left_and_the_first_blocks_pace() -
     assert planned.block_steps == 400 and planned.blocks_measured and planned.global_steps == 1000
     # 60 steps of block 0 done, 100 s left at 3 steps/s: 300 more steps for the three blocks' 3B - 60
     again = blocks_from_remaining_time(planned, LengthSettings(time_budget_s=600.0), num_blocks_trained=3, remaining_s=100.0,
-                                       pace_steps_per_s=3.0, first_block_steps_done=60)
+                                       pace_steps_per_s=3.0, current_block_steps_done=60)
     assert again.block_steps == 120
     spent = blocks_from_remaining_time(planned, LengthSettings(time_budget_s=600.0), num_blocks_trained=3, remaining_s=-50.0,
-                                       pace_steps_per_s=3.0, first_block_steps_done=60)
+                                       pace_steps_per_s=3.0, current_block_steps_done=60)
     assert spent.block_steps == 61  # out of time: block 0 ends at its next step, the others train as long
 
+
+
+def test_on_one_machine_the_blocks_after_a_finished_one_share_the_time_left_at_their_own_pace() -> None:
+    length = TrainingLength(1000, 400, "budget", budget_s=600.0, pace_steps_per_s=5.0)
+    settings = LengthSettings(time_budget_s=600.0)
+    # Block 0 trained 400 steps; block 1 has done 30 at 2 steps/s, 3 blocks in all have trained at 3 steps/s:
+    # B - 30 steps at 2/s and B more at 3/s in 200 s: B (1/2 + 1/3) = 200 + 15, B = 258.
+    planned = blocks_from_remaining_time(length, settings, num_blocks_trained=3, remaining_s=200.0, pace_steps_per_s=2.0,
+                                         later_blocks_pace_steps_per_s=3.0, current_block_steps_done=30, finished_block_steps=[400])
+    assert (planned.finished_block_steps, planned.block_steps) == ((400,), 258)
+    assert [planned.steps_of_block(i) for i in range(3)] == [400, 258, 258] and planned.total_steps(3) == 1000 + 400 + 2 * 258
+    assert length_from_json(length_to_json(planned)) == planned
+    with pytest.raises(LengthError, match="one after another on one machine"):  # K workers: every block gets the same time
+        blocks_from_remaining_time(length, LengthSettings(time_budget_s=600.0, block_workers=3), num_blocks_trained=3,
+                                   remaining_s=200.0, pace_steps_per_s=2.0, finished_block_steps=[400])
 
 def test_a_length_survives_its_json_and_a_broken_one_is_named() -> None:
     length = TrainingLength(1234, 567, "budget", budget_s=3600.0, pace_steps_per_s=9.5, measured=True, blocks_measured=False)

@@ -137,8 +137,10 @@ def curve_table(specs: List[Dict[str, Any]], results: Dict[str, Dict[str, Any]])
                 continue
             final = result["final"]
             length = result.get("length", {})
-            steps = (f"{length.get('global_steps')} + {result.get('num_blocks', 0)} x {length.get('block_steps')}"
-                     if result.get("num_blocks") else f"{result['steps']}")
+            blocks = [n for name, n in (length.get("phases") or {}).items() if name != "global"]
+            each = (f"{len(blocks)} x {blocks[0]}" if len(set(blocks)) == 1 else " + ".join(map(str, blocks))) if blocks else \
+                f"{result.get('num_blocks', 0)} x {length.get('block_steps')}"
+            steps = f"{length.get('global_steps')} + {each}" if result.get("num_blocks") else f"{result['steps']}"
             drop = best_drop_db(result)
             cells.append(f"{final['psnr']:.2f} / {final['ssim']:.3f} ({format_duration(wall_clock_s(spec, result))}, {steps} steps"
                          + (f"; {drop:.2f} dB below its best" if drop > 0.005 else "") + ")")

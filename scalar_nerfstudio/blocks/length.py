@@ -12,7 +12,8 @@ user gives them (``--pipeline.global-steps``, ``--pipeline.block-steps``), they 
 * **from a time budget** (``--pipeline.time-budget 1h``): the capture's plan scaled so that the
   run's critical path (``G``, then the blocks in ``ceil(n / workers)`` waves of ``B``) fits the
   budget at the pace the run measures in its first steps. The plan is provisional until then; the
-  blocks' steps are planned once more when the global phase ends, from the time that is left.
+  blocks' steps are planned once more when the global phase ends, from the time that is left, and on
+  one machine again in each block, at the pace of the blocks so far (blocks differ in cost).
 
 Pure Python: no torch or nerfstudio import, so it is tested on its own.
 """
@@ -22,7 +23,7 @@ from __future__ import annotations
 import math
 import re
 from dataclasses import dataclass, replace
-from typing import Any, Dict, Literal, Optional, Sequence
+from typing import Any, Dict, Literal, Optional, Sequence, Tuple
 
 __all__ = [
     "LengthError", "LengthSettings", "LengthSource", "TrainingLength", "blocks_from_remaining_time", "format_duration",
@@ -108,6 +109,9 @@ class TrainingLength:
         pace_steps_per_s: the training pace the plan was made for (measured), for a budget's plan.
         measured: False while a budget's plan waits for the pace of the run's first steps.
         blocks_measured: False while a budget's block steps wait for the end of the global phase.
+        finished_block_steps: steps of the first blocks, as they trained, when a budget on one machine planned
+            the blocks after them again at the pace those blocks measured (``()``: every block trains
+            ``block_steps``).
     """
 
     global_steps: int
@@ -117,15 +121,20 @@ class TrainingLength:
     pace_steps_per_s: Optional[float] = None
     measured: bool = True
     blocks_measured: bool = True
+    finished_block_steps: Tuple[int, ...] = ()
 
     @property
     def final(self) -> bool:
         """Nothing of the plan is left to measure."""
         return self.measured and self.blocks_measured
 
+    def steps_of_block(self, index: int) -> int:
+        """Steps of the ``index``-th block phase (in training order)."""
+        return self.finished_block_steps[index] if index < len(self.finished_block_steps) else self.block_steps
+
     def total_steps(self, num_blocks_trained: int) -> int:
         """Steps of the whole run on one machine."""
-        return self.global_steps + num_blocks_trained * self.block_steps
+        return self.global_steps + sum(self.steps_of_block(i) for i in range(num_blocks_trained))
 
 
 def _steps(rays_per_pixel: float, pixels: float, rays_per_batch: int, low: int, high: int) -> int:
@@ -205,21 +214,40 @@ def length_from_budget(
 
 def blocks_from_remaining_time(
     length: TrainingLength, settings: LengthSettings, *, num_blocks_trained: int, remaining_s: float, pace_steps_per_s: float,
-    first_block_steps_done: int = 0,
+    later_blocks_pace_steps_per_s: Optional[float] = None, current_block_steps_done: int = 0, finished_block_steps: Sequence[int] = (),
 ) -> TrainingLength:
     """A budget's plan once its global phase has ended: the blocks' steps from the time left.
 
     Each of the ``ceil(n / workers)`` waves gets an equal share of ``remaining_s`` at
     ``pace_steps_per_s`` (at least 1 step: a run that has spent its budget still trains each block
-    briefly, and says so in its log). ``first_block_steps_done``: the first block has trained this many
-    of its steps (planned again at its own pace: a block's steps cost more than the global model's),
-    and keeps at least those plus one. Given block steps stay as given."""
+    briefly, and says so in its log); ``later_blocks_pace_steps_per_s`` (default: the same) the pace of
+    the waves after the first, when it differs (the current block's own pace against all blocks' so far).
+    ``current_block_steps_done``: the block that trains now has trained
+    this many of its steps (planned again at the blocks' own pace: a block's steps cost more than the
+    global model's) and keeps at least those plus one. ``finished_block_steps``: on one machine
+    (``block_workers`` 1), the steps of the blocks that have trained to their end, which keep them; the
+    time left is shared by the blocks after them. Given block steps stay as given.
+
+    Raises:
+        LengthError: finished blocks are given for blocks that train in parallel waves, or more of them
+            than there are blocks.
+    """
     if settings.block_steps is not None:
         return replace(length, blocks_measured=True)
-    waves = max(_waves(num_blocks_trained, settings.block_workers), 1)
-    steps = (max(remaining_s, 0.0) * max(pace_steps_per_s, 0.0) + first_block_steps_done) / waves
-    block_steps = int(min(max(math.floor(steps), first_block_steps_done + 1, 1), max(settings.max_steps, 1)))
-    return replace(length, block_steps=block_steps, blocks_measured=True)
+    finished = tuple(int(steps) for steps in finished_block_steps)
+    if finished and (settings.block_workers > 1 or len(finished) >= num_blocks_trained):
+        raise LengthError(f"{len(finished)} finished blocks of {num_blocks_trained} on {settings.block_workers} workers: "
+                          "only blocks trained one after another on one machine are planned again block by block")
+    waves = max(_waves(num_blocks_trained - len(finished), settings.block_workers), 1)
+    pace, later = max(pace_steps_per_s, 0.0), later_blocks_pace_steps_per_s
+    if pace <= 0:
+        steps = 0.0
+    elif later is None or not (math.isfinite(later) and later > 0):
+        steps = (max(remaining_s, 0.0) * pace + current_block_steps_done) / waves
+    else:  # B - done steps at ``pace``, then (waves - 1) x B at ``later``, in the time left
+        steps = (max(remaining_s, 0.0) + current_block_steps_done / pace) / (1.0 / pace + (waves - 1) / later)
+    block_steps = int(min(max(math.floor(steps), current_block_steps_done + 1, 1), max(settings.max_steps, 1)))
+    return replace(length, block_steps=block_steps, blocks_measured=True, finished_block_steps=finished)
 
 
 def plan_length(
@@ -238,6 +266,7 @@ def length_to_json(length: TrainingLength) -> Dict[str, Any]:
         "global_steps": length.global_steps, "block_steps": length.block_steps, "source": length.source,
         "budget_s": length.budget_s, "pace_steps_per_s": length.pace_steps_per_s,
         "measured": length.measured, "blocks_measured": length.blocks_measured,
+        "finished_block_steps": list(length.finished_block_steps),
     }
 
 
@@ -256,9 +285,10 @@ def length_from_json(content: Dict[str, Any]) -> TrainingLength:
             global_steps=int(content["global_steps"]), block_steps=int(content["block_steps"]), source=source,  # type: ignore[arg-type]
             budget_s=None if budget is None else float(budget), pace_steps_per_s=None if pace is None else float(pace),
             measured=bool(content.get("measured", True)), blocks_measured=bool(content.get("blocks_measured", True)),
+            finished_block_steps=tuple(int(steps) for steps in content.get("finished_block_steps", ())),
         )
     except (KeyError, TypeError, ValueError) as error:
         raise LengthError(f"malformed training length {content!r}: {error}") from None
-    if length.global_steps < 0 or length.block_steps < 0:
+    if length.global_steps < 0 or length.block_steps < 0 or any(steps < 0 for steps in length.finished_block_steps):
         raise LengthError(f"malformed training length {content!r}: negative steps")
     return length

@@ -103,7 +103,7 @@ class ScalarBlockTrainerConfig(ScalarTrainerConfig):
         if pipeline.decoder_mode == defaults.decoder_mode:
             pipeline.decoder_mode = global_pipeline.decoder_mode
         if pipeline.block_steps is None and pipeline.time_budget is None:  # the steps the global run planned for its blocks
-            pipeline.block_steps = global_length.block_steps if global_length is not None else global_pipeline.block_steps
+            pipeline.block_steps = global_length.steps_of_block(self.block) if global_length is not None else global_pipeline.block_steps
         if pipeline.datamanager.train_num_rays_per_batch == defaults.datamanager.train_num_rays_per_batch:
             pipeline.datamanager.train_num_rays_per_batch = global_pipeline.datamanager.train_num_rays_per_batch
         pipeline.only_block = self.block

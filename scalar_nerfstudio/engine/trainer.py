@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Literal, Optional, Set, Type
+from typing import Any, Callable, Dict, List, Literal, Optional, Set, Tuple, Type
 
 import torch
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
@@ -19,7 +19,7 @@ from scalar_nerfstudio.blocks.length import TrainingLength, blocks_from_remainin
 from scalar_nerfstudio.blocks.plan import save_plan
 from scalar_nerfstudio.config_checks import OptionError, check_block_counts, check_block_plan, check_options, check_output_dir
 from scalar_nerfstudio.data.validation import SceneError, scan_scene
-from scalar_nerfstudio.engine.contract import PhasedPipeline
+from scalar_nerfstudio.engine.contract import Phase, PhasedPipeline
 from scalar_nerfstudio.engine.device import resolve_device_type, resolve_machine
 from scalar_nerfstudio.engine.process_settings import apply_process_settings
 from scalar_nerfstudio.engine.preview import write_preview
@@ -158,7 +158,9 @@ class ScalarTrainer(Trainer):
         self._total_from_plan = config.max_num_iterations <= 0
         self._pace_reported = False
         self._replans_done: Set[float] = set()
-        self._block_pace_planned = False
+        self._block_replans_done: Set[Tuple[int, str]] = set()
+        self._blocks_began: Optional[Tuple[int, float]] = None
+        """(steps done, training seconds) when the global phase ended in this process: the blocks' pace is read since."""
         self._trained_s_before: Optional[float] = None
 
     def setup(self, test_mode: Literal["test", "val", "inference"] = "val") -> None:
@@ -278,24 +280,15 @@ class ScalarTrainer(Trainer):
                 CONSOLE.print(f"step {step + 1}: {pace:.2f} steps/s over the last steps, {due[-1]:.0%} of the budget spent; "
                               f"{format_length(pipeline.length, pipeline.phases)}; {eta_line(self._total_steps - step - 1, pace)}")
         phase = pipeline.phase_at(step)
-        first_block = next((p for p in pipeline.phases if p.block is not None), None)
-        done_in_block = step + 1 - phase.start_step
-        if (budget is not None and phase == first_block and phase.start_step > 0 and not self._block_pace_planned
-                and done_in_block >= min(BLOCK_CALIBRATION_STEPS, max(phase.num_steps // 3, 1)) and phase.num_steps - done_in_block > 1):
-            self._block_pace_planned = True  # the blocks' steps again, at the first block's own pace
-            pace = clock.pace(since_steps=phase.start_step + min(10, done_in_block // 2)) or 0.0
-            remaining = budget - self._budget_spent_s(step + 1, pace)
-            self._replan(blocks_from_remaining_time(pipeline.length, pipeline.length_settings(),
-                                                    num_blocks_trained=pipeline.num_blocks_following, remaining_s=remaining,
-                                                    pace_steps_per_s=pace, first_block_steps_done=done_in_block), started_through=step)
-            CONSOLE.print(f"step {step + 1}: {pace:.2f} steps/s in {phase.name}; {format_length(pipeline.length, pipeline.phases)}; "
-                          f"{eta_line(self._total_steps - step - 1, pace)}")
+        if budget is not None and phase.block is not None and phase.start_step > 0:
+            self._plan_blocks_in(phase, step, budget)
         if budget is not None and phase.block is None and step + 1 == phase.end_step and not pipeline.length.blocks_measured:
             pace = clock.pace(last_steps=200) or pipeline.length.pace_steps_per_s or 0.0
             remaining = budget - self._budget_spent_s(step + 1, pace)
             self._replan(blocks_from_remaining_time(pipeline.length, pipeline.length_settings(),
                                                     num_blocks_trained=pipeline.num_blocks_following, remaining_s=remaining,
                                                     pace_steps_per_s=pace), started_through=step)
+            self._blocks_began = (step + 1, clock.elapsed_s())
             CONSOLE.print(f"step {step + 1}: the global phase took {format_duration(clock.elapsed_s())}; "
                           f"{format_duration(max(remaining, 0))} "
                           f"of the budget left: {format_length(pipeline.length, pipeline.phases)}")
@@ -303,6 +296,40 @@ class ScalarTrainer(Trainer):
         if self._pace_reported and step + 1 == upcoming.start_step and step + 1 < self._total_steps:
             CONSOLE.print(f"step {step + 1}: phase {upcoming.name} starts ({upcoming.num_steps} steps); the run has "
                           f"{eta_line(self._total_steps - step - 1, clock.pace(last_steps=200))}")
+
+    def _plan_blocks_in(self, phase: Phase, step: int, budget: float) -> None:
+        """In a block phase of a budget run, after ``step``: plan its steps and those of the blocks after it again
+        from the time left, once it has trained :data:`.pace.BLOCK_CALIBRATION_STEPS` (or a third) of them, and on
+        one machine again at its half (blocks differ in cost: a plan at the first block's pace alone overran). The
+        rest of this block is costed at its own pace, the blocks after it at the pace of all blocks so far. On
+        K workers only the first block is planned again (each block stands for one worker's)."""
+        pipeline = self.phased_pipeline
+        settings = pipeline.length_settings()
+        blocks = [p for p in pipeline.phases if p.block is not None]
+        index = blocks.index(phase)
+        one_machine = settings.block_workers <= 1
+        if index > 0 and not one_machine:
+            return
+        done = step + 1 - phase.start_step
+        due = [name for name, at in (("start", min(BLOCK_CALIBRATION_STEPS, max(phase.num_steps // 3, 1))), ("half", phase.num_steps // 2))
+               if (name == "start" or one_machine) and done >= at and (index, name) not in self._block_replans_done]
+        if not due or phase.num_steps - done <= 1:
+            return
+        self._block_replans_done.update((index, name) for name in due)
+        clock = self.training_clock
+        pace = clock.pace(since_steps=phase.start_step + min(10, done // 2)) or 0.0
+        blocks_pace = pace
+        if self._blocks_began is not None and index > 0:
+            began_steps, began_s = self._blocks_began
+            spent_in_blocks = clock.elapsed_s() - began_s
+            blocks_pace = (step + 1 - began_steps) / spent_in_blocks if spent_in_blocks > 0 else pace
+        remaining = budget - self._budget_spent_s(step + 1, pace)
+        self._replan(blocks_from_remaining_time(
+            pipeline.length, settings, num_blocks_trained=pipeline.num_blocks_following, remaining_s=remaining, pace_steps_per_s=pace,
+            later_blocks_pace_steps_per_s=blocks_pace, current_block_steps_done=done,
+            finished_block_steps=[p.num_steps for p in blocks[:index]] if one_machine else ()), started_through=step)
+        CONSOLE.print(f"step {step + 1}: {pace:.2f} steps/s in {phase.name} ({blocks_pace:.2f} over the blocks so far); "
+                      f"{format_length(pipeline.length, pipeline.phases)}; {eta_line(self._total_steps - step - 1, pace)}")
 
     def _replan_from_pace(self, step: int, budget: float, pace: float) -> None:
         """Plan the steps so that those done after ``step`` plus those that fit the budget's time left at ``pace``
