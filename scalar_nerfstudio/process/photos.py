@@ -1,7 +1,10 @@
 """The photos of a capture: which files, whether they decode, their size, camera and EXIF GPS.
 
 Everything here only reads the photos; :func:`inspect_photos` checks a folder before
-process-data writes anything and raises :class:`ProcessDataError` naming the files at fault.
+process-data writes anything. A photo that does not decode is left out (named in
+:attr:`PhotoSet.unreadable`); :class:`ProcessDataError` is raised, naming the files at fault, when
+too few photos remain. Photos of several cameras or sizes are grouped (:meth:`PhotoSet.camera_groups`):
+each group gets its own intrinsics.
 """
 
 from __future__ import annotations
@@ -10,7 +13,7 @@ import math
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Dict, List, Optional, Sequence, Tuple
+from typing import Callable, Dict, List, NamedTuple, Optional, Tuple
 
 import numpy as np
 from PIL import ExifTags, Image, ImageFile
@@ -39,6 +42,31 @@ class Photo:
     """EXIF GPS latitude, longitude (degrees, north and east positive) and altitude (m; NaN when the
     photo has a position but no altitude), or None."""
 
+    @property
+    def camera_key(self) -> "CameraKey":
+        """What one set of intrinsics is fitted to: photos with the same key share a camera."""
+        return CameraKey(camera=self.camera, width=self.size[0], height=self.size[1],
+                         focal_mm=None if self.focal_mm is None else round(self.focal_mm, 1))
+
+
+class CameraKey(NamedTuple):
+    """One camera of a capture: EXIF make and model, image size and EXIF focal length (a zoom lens at
+    another focal length, or the same body at another image size, is another camera)."""
+
+    camera: str
+    width: int
+    height: int
+    focal_mm: Optional[float]
+
+    def describe(self) -> str:
+        """E.g. ``3600x2700 px, DJI FC6310, 8.8 mm``."""
+        what = f"{self.width}x{self.height} px"
+        if self.camera:
+            what += f", {self.camera}"
+        if self.focal_mm is not None:
+            what += f", {self.focal_mm:g} mm"
+        return what
+
 
 @dataclass(frozen=True)
 class PhotoSet:
@@ -46,15 +74,29 @@ class PhotoSet:
 
     folder: Path
     photos: Tuple[Photo, ...]
+    """The photos that decode (the ones structure-from-motion is given)."""
+    unreadable: Tuple[Tuple[str, str], ...] = ()
+    """(file name, why) of the photos left out because they do not decode."""
 
     @property
     def names(self) -> List[str]:
         return [photo.name for photo in self.photos]
 
     @property
-    def size(self) -> Tuple[int, int]:
-        """(width, height) shared by all photos."""
-        return self.photos[0].size
+    def num_in_folder(self) -> int:
+        """Photos in the folder, the unreadable ones included."""
+        return len(self.photos) + len(self.unreadable)
+
+    def camera_groups(self) -> Dict[CameraKey, List[str]]:
+        """Camera -> names of its photos (cameras in the order of their first photo by name)."""
+        groups: Dict[CameraKey, List[str]] = {}
+        for photo in self.photos:
+            groups.setdefault(photo.camera_key, []).append(photo.name)
+        return groups
+
+    def camera_of(self) -> Dict[str, CameraKey]:
+        """Photo name -> its camera."""
+        return {photo.name: photo.camera_key for photo in self.photos}
 
     @property
     def all_have_gps(self) -> bool:
@@ -148,34 +190,6 @@ def read_photo(path: Path) -> Photo:
     return Photo(name=path.name, size=(int(size[0]), int(size[1])), camera=camera, focal_mm=focal, gps=_gps(exif))
 
 
-def _examples(names: Sequence[str], limit: int = 3) -> str:
-    shown = ", ".join(names[:limit])
-    return shown + (f" and {len(names) - limit} more" if len(names) > limit else "")
-
-
-def _check_one_camera(folder: Path, photos: Sequence[Photo]) -> None:
-    """Refuse photos of different sizes or cameras: process-data fits one camera to all of them."""
-    groups: Dict[Tuple, List[str]] = {}
-    for photo in photos:
-        focal = None if photo.focal_mm is None else round(photo.focal_mm, 2)
-        groups.setdefault((photo.size, photo.camera, focal), []).append(photo.name)
-    if len(groups) == 1:
-        return
-    lines = []
-    for (size, camera, focal), names in sorted(groups.items(), key=lambda item: -len(item[1])):
-        what = f"{size[0]}x{size[1]} px"
-        if camera:
-            what += f", {camera}"
-        if focal is not None:
-            what += f", {focal:g} mm"
-        lines.append(f"  {what}: {len(names)} photo(s): {_examples(names)}")
-    raise ProcessDataError(
-        f"{folder}: the photos come from {len(groups)} different cameras or image sizes, and process-data fits one "
-        "camera (one set of intrinsics) to all photos:\n" + "\n".join(lines) + "\n"
-        "Process each camera's photos on their own (one folder each), or leave out the odd ones."
-    )
-
-
 def inspect_photos(folder: Path, progress: Optional[Callable[[int], None]] = None, workers: int = 2) -> PhotoSet:
     """Check a capture folder before anything is written.
 
@@ -184,9 +198,12 @@ def inspect_photos(folder: Path, progress: Optional[Callable[[int], None]] = Non
         progress: called with 1 after each photo is decoded.
         workers: photos decoded at once.
 
+    Returns:
+        The photos that decode; those that do not are left out and named in ``unreadable``.
+
     Raises:
-        ProcessDataError: the folder is missing or has fewer than :data:`MIN_PHOTOS` photos, a photo
-            does not decode (all such files are named), or the photos differ in size or camera.
+        ProcessDataError: the folder is missing, or fewer than :data:`MIN_PHOTOS` of its photos
+            decode (the ones that do not are named).
     """
     folder = Path(folder)
     if not folder.is_dir():
@@ -208,9 +225,12 @@ def inspect_photos(folder: Path, progress: Optional[Callable[[int], None]] = Non
 
     with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
         results = list(pool.map(read, names))
-    errors = [str(r) for r in results if isinstance(r, ProcessDataError)]
-    if errors:
-        raise ProcessDataError(f"{len(errors)} of {len(names)} photo(s) cannot be decoded:\n" + "\n".join(f"  {e}" for e in errors))
+    unreadable = tuple((name, str(r)) for name, r in zip(names, results) if isinstance(r, ProcessDataError))
     photos = tuple(r for r in results if isinstance(r, Photo))
-    _check_one_camera(folder, photos)
-    return PhotoSet(folder=folder, photos=photos)
+    if len(photos) < MIN_PHOTOS:
+        raise ProcessDataError(
+            f"{len(unreadable)} of {len(names)} photo(s) cannot be decoded, leaving {len(photos)}; "
+            f"structure-from-motion needs at least {MIN_PHOTOS} overlapping photos:\n"
+            + "\n".join(f"  {why}" for _, why in unreadable)
+        )
+    return PhotoSet(folder=folder, photos=photos, unreadable=unreadable)

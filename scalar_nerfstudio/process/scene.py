@@ -117,19 +117,39 @@ def write_ply(path: Path, points: np.ndarray, colours: np.ndarray) -> None:
         handle.write(vertex.tobytes())
 
 
-def transforms_json(names: Sequence[str], camera_to_world_cv: np.ndarray, *, intrinsics: dict, frame: CaptureFrame,
-                    image_ids: Sequence[int]) -> dict:
+def _check_per_photo(names: Sequence[str], camera_to_world_cv: np.ndarray, intrinsics: Sequence[dict],
+                     image_ids: Sequence[int]) -> None:
+    if not len(names) == len(camera_to_world_cv) == len(intrinsics) == len(image_ids):
+        raise ValueError(f"{len(names)} names, {len(camera_to_world_cv)} poses, {len(intrinsics)} intrinsics and "
+                         f"{len(image_ids)} image ids: one of each per photo")
+
+
+def transforms_json(names: Sequence[str], camera_to_world_cv: np.ndarray, *, intrinsics: Sequence[dict],
+                    frame: CaptureFrame, image_ids: Sequence[int]) -> dict:
     """nerfstudio's transforms.json (OPENCV camera; OpenGL camera axes, as nerfstudio's COLMAP converter
-    writes them) of cameras already in the capture's frame."""
+    writes them) of cameras already in the capture's frame.
+
+    Args:
+        names: [N] photo file names.
+        camera_to_world_cv: [N, 4, 4] poses, OpenCV camera axes.
+        intrinsics: [N] w, h, fl_x, fl_y, cx, cy, k1, k2, p1, p2 of each photo. When all photos share
+            one set it is written once, at the top level; else each frame carries its own (nerfstudio
+            reads a key per frame when the top level lacks it).
+        frame: the capture's frame (recorded as ``capture_frame``).
+        image_ids: [N] COLMAP image ids.
+    """
+    _check_per_photo(names, camera_to_world_cv, intrinsics, image_ids)
     poses = np.array(camera_to_world_cv, dtype=np.float64)
     poses[:, :3, 1:3] *= -1.0  # OpenCV (x right, y down, z forward) -> OpenGL (y up, z backward)
+    shared = all(values == intrinsics[0] for values in intrinsics)
     frames = [
-        {"file_path": f"images/{name}", "transform_matrix": pose.tolist(), "colmap_im_id": int(image_id)}
-        for name, pose, image_id in zip(names, poses, image_ids)
+        {"file_path": f"images/{name}", "transform_matrix": pose.tolist(), "colmap_im_id": int(image_id),
+         **({} if shared else dict(values))}
+        for name, pose, image_id, values in zip(names, poses, image_ids, intrinsics)
     ]
     return {
         "camera_model": "OPENCV",
-        **intrinsics,
+        **(dict(intrinsics[0]) if shared and intrinsics else {}),
         "frames": frames,
         # The poses are in the capture's frame already: nerfstudio must not apply its own
         # COLMAP axis swap (it does when SCENE/colmap/sparse/0 exists and this key is absent), so
@@ -147,7 +167,7 @@ def write_scene(
     names: Sequence[str],
     camera_to_world_cv: np.ndarray,
     image_ids: Sequence[int],
-    intrinsics: dict,
+    intrinsics: Sequence[dict],
     points: np.ndarray,
     colours: np.ndarray,
     frame: CaptureFrame,
@@ -155,8 +175,11 @@ def write_scene(
     workers: int = 2,
     advance: Optional[Callable[[int], None]] = None,
 ) -> Path:
-    """Write the scene of the registered photos ``names`` (poses and points in COLMAP's frame; they
-    are moved to ``frame``'s). Returns the path of ``transforms.json``."""
+    """Write the scene of the registered photos ``names`` ([N] poses ``camera_to_world_cv`` [N, 4, 4]
+    and [P, 3] points in COLMAP's frame; they are moved to ``frame``'s; [N] ``intrinsics``, one dict
+    per photo, see :func:`transforms_json`). Each photo's downscales are of its own size.
+    Returns the path of ``transforms.json``."""
+    _check_per_photo(names, camera_to_world_cv, intrinsics, image_ids)
     output = Path(output)
     output.mkdir(parents=True, exist_ok=True)
     staging = output / f"{_STAGING_PREFIX}{os.getpid()}"

@@ -1,9 +1,11 @@
 """Structure-from-motion with pycolmap on the CPU: features, matching, incremental mapping.
 
-The work lives in ``SCENE/colmap``: ``database.db`` (features and matches), ``sparse/0`` (the
-largest reconstruction, COLMAP binary) and ``stages.json`` (which stages finished, with the options
-they ran with). A re-run skips the finished stages and resumes an interrupted feature extraction
-where it stopped (COLMAP skips photos and pairs already in the database).
+Each camera of the capture (:meth:`PhotoSet.camera_groups`: make and model, image size, focal
+length) gets its own COLMAP camera, so its own intrinsics. The work lives in ``SCENE/colmap``:
+``database.db`` (features and matches), ``sparse/0`` (the largest reconstruction, COLMAP binary) and
+``stages.json`` (which stages finished, with the options they ran with). A re-run skips the finished
+stages and resumes an interrupted feature extraction where it stopped (COLMAP skips photos and pairs
+already in the database).
 
 This module imports pycolmap (the ``process`` extra); the rest of ``scalar_nerfstudio.process``
 does not.
@@ -16,7 +18,7 @@ import shutil
 import threading
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Dict, List, NamedTuple, Optional
+from typing import Callable, Dict, List, NamedTuple, Optional, Tuple
 
 import numpy as np
 import pycolmap
@@ -25,7 +27,7 @@ from scalar_nerfstudio.atomic_io import atomic_write_text
 from scalar_nerfstudio.process.errors import ProcessDataError
 from scalar_nerfstudio.process.photos import PhotoSet
 
-STAGES_VERSION = 1
+STAGES_VERSION = 2  # 2: one camera per group of photos (sizes and cameras may differ)
 MATCHING_METHODS = ("auto", "spatial", "sequential", "exhaustive")
 #: ``--matching auto`` matches every pair up to this many photos (without GPS).
 EXHAUSTIVE_MAX_PHOTOS = 50
@@ -60,8 +62,10 @@ class SparseModel(NamedTuple):
     """[N, 4, 4] poses of the registered photos (OpenCV axes: x right, y down, z forward)."""
     image_ids: List[int]
     """[N] COLMAP image ids."""
-    intrinsics: Dict[str, float]
-    """w, h, fl_x, fl_y, cx, cy, k1, k2, p1, p2 in full-resolution pixels."""
+    intrinsics: List[Dict[str, float]]
+    """[N] w, h, fl_x, fl_y, cx, cy, k1, k2, p1, p2 of each registered photo's camera, full-resolution pixels."""
+    camera_ids: List[int]
+    """[N] COLMAP camera id of each registered photo (photos of one camera share its intrinsics)."""
     points: np.ndarray
     """[P, 3] sparse points."""
     colours: np.ndarray
@@ -111,7 +115,11 @@ class Workspace:
 
 
 def _signature(photos: PhotoSet, options: SfmOptions) -> dict:
-    return {"version": STAGES_VERSION, "photos": photos.names, "size": list(photos.size), "max_image_size": options.max_image_size, "camera_model": _CAMERA_MODEL}
+    # The cameras as the database holds them: each group's size, photo count and first photo (its EXIF
+    # labels left out, so the same photos without EXIF, grouped the same way, still resume).
+    cameras = [[key.width, key.height, len(names), names[0]] for key, names in photos.camera_groups().items()]
+    return {"version": STAGES_VERSION, "photos": photos.names, "cameras": cameras,
+            "max_image_size": options.max_image_size, "camera_model": _CAMERA_MODEL}
 
 
 def open_workspace(colmap_dir: Path, photos: PhotoSet, options: SfmOptions) -> tuple:
@@ -126,7 +134,10 @@ def open_workspace(colmap_dir: Path, photos: PhotoSet, options: SfmOptions) -> t
     if stages is not None:
         for key, value in signature.items():
             if stages.get(key) != value:
-                what = {"photos": "another set of photos", "size": "photos of another size"}.get(key, f"{key} {stages.get(key)!r} (now {value!r})")
+                what = {
+                    "version": f"an older process-data (stages version {stages.get(key)!r}, now {value!r})",
+                    "photos": "another set of photos", "cameras": "photos of other sizes or cameras",
+                }.get(key, f"{key} {stages.get(key)!r} (now {value!r})")
                 raise ProcessDataError(f"{workspace.dir} was made with {what}; pass --overwrite to start over")
         return workspace, stages
     workspace.dir.mkdir(parents=True, exist_ok=True)
@@ -156,31 +167,45 @@ def _run_in_thread(function: Callable[[], object], tick: Optional[Callable[[], N
     return result.get("value")
 
 
-def extract_features(workspace: Workspace, photos: PhotoSet, *, options: SfmOptions, advance: Callable[[int], None]) -> None:
-    """SIFT on every photo not yet in the database, :data:`_EXTRACT_CHUNK` photos per call; one
-    camera (OPENCV, focal from EXIF when it has one) is shared by all photos."""
+def _image_cameras(workspace: Workspace) -> Tuple[Dict[str, int], set]:
+    """(photo name -> COLMAP camera id of the photos in the database, names of those with keypoints)."""
     with pycolmap.Database.open(workspace.database) as database:
-        done = {image.name for image in database.read_all_images() if database.exists_keypoints(image.image_id)}
-        cameras = database.read_all_cameras()
+        images = database.read_all_images()
+        with_keypoints = {image.name for image in images if database.exists_keypoints(image.image_id)}
+        return {image.name: image.camera_id for image in images}, with_keypoints
+
+
+def extract_features(workspace: Workspace, photos: PhotoSet, *, options: SfmOptions,
+                     advance: Callable[[int], None]) -> None:
+    """SIFT on every photo not yet in the database, :data:`_EXTRACT_CHUNK` photos of one camera per
+    call. Each camera of :meth:`PhotoSet.camera_groups` gets one COLMAP camera (OPENCV, focal from its
+    first photo's EXIF when it has one), created with its first photo and shared by the others.
+
+    (pycolmap's ``CameraMode.AUTO`` compares a photo only with the one read before it, in one call, so
+    interleaved sizes or chunked calls would give a camera per run of photos: the cameras are chosen
+    here, with ``existing_camera_id``.)"""
+    camera_of_photo, done = _image_cameras(workspace)
     todo = [name for name in photos.names if name not in done]
     advance(len(photos.names) - len(todo))
-    reader = pycolmap.ImageReaderOptions()
-    reader.camera_model = _CAMERA_MODEL
-    if cameras:
-        reader.existing_camera_id = cameras[0].camera_id
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.max_image_size = options.max_image_size
     extraction.num_threads = options.num_threads
-    for start in range(0, len(todo), _EXTRACT_CHUNK):
-        chunk = todo[start : start + _EXTRACT_CHUNK]
-        pycolmap.extract_features(
-            workspace.database, photos.folder, image_names=chunk, camera_mode=pycolmap.CameraMode.SINGLE,
-            reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu,
-        )
-        if reader.existing_camera_id < 0:
-            with pycolmap.Database.open(workspace.database) as database:
-                reader.existing_camera_id = database.read_all_cameras()[0].camera_id
-        advance(len(chunk))
+    for names in photos.camera_groups().values():
+        camera_id = next((camera_of_photo[name] for name in names if name in camera_of_photo), -1)
+        group_todo = [name for name in names if name not in done]
+        for start in range(0, len(group_todo), _EXTRACT_CHUNK):
+            chunk = group_todo[start : start + _EXTRACT_CHUNK]
+            reader = pycolmap.ImageReaderOptions()
+            reader.camera_model = _CAMERA_MODEL
+            reader.existing_camera_id = camera_id
+            pycolmap.extract_features(
+                workspace.database, photos.folder, image_names=chunk, camera_mode=pycolmap.CameraMode.SINGLE,
+                reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu,
+            )
+            if camera_id < 0:
+                camera_of_photo = _image_cameras(workspace)[0]
+                camera_id = camera_of_photo[chunk[0]]
+            advance(len(chunk))
     with pycolmap.Database.open(workspace.database) as database:
         images = {image.name: image.image_id for image in database.read_all_images()}
         empty = [name for name in photos.names if name not in images or database.num_keypoints_for_image(images[name]) == 0]
@@ -245,16 +270,19 @@ def map_photos(workspace: Workspace, photos: PhotoSet, *, options: SfmOptions, o
     scratch.mkdir(parents=True)
     try:
         models = _run_in_thread(
-            lambda: pycolmap.incremental_mapping(workspace.database, photos.folder, scratch, options=mapping, next_image_callback=on_image, initial_image_pair_callback=lambda: on_image(2)),
+            lambda: pycolmap.incremental_mapping(
+                workspace.database, photos.folder, scratch, options=mapping, next_image_callback=on_image,
+                initial_image_pair_callback=lambda: on_image(2),
+            ),
             tick,
         )
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
     if not models:
         raise ProcessDataError(
-            f"{photos.folder}: structure-from-motion could not place any photos: no pair of photos shares enough matched "
-            f"features ({verified_pairs(workspace)} verified pair(s) with 15+ matches). The photos must overlap (about 60 % "
-            "between neighbours); try --matching exhaustive or a larger --max-image-size"
+            f"{photos.folder}: structure-from-motion could not place any photos: no pair of photos shares enough "
+            f"matched features ({verified_pairs(workspace)} verified pair(s) with 15+ matches). The photos must "
+            "overlap (about 60 % between neighbours); try --matching exhaustive or a larger --max-image-size"
         )
     best = max(models.values(), key=lambda model: model.num_reg_images())
     partial = workspace.sparse.with_name("0.partial")
@@ -272,15 +300,23 @@ def load_model(workspace: Workspace) -> pycolmap.Reconstruction:
     return pycolmap.Reconstruction(workspace.sparse)
 
 
-def to_sparse_model(reconstruction: pycolmap.Reconstruction) -> SparseModel:
-    """Plain arrays of a reconstruction (one camera)."""
-    cameras = list(reconstruction.cameras.values())
-    if len(cameras) != 1 or cameras[0].model_name != _CAMERA_MODEL:
-        raise ProcessDataError(f"expected one {_CAMERA_MODEL} camera in the reconstruction, got {[c.model_name for c in cameras]}")
-    camera = cameras[0]
+def _intrinsics(camera: pycolmap.Camera) -> Dict[str, float]:
+    """nerfstudio's intrinsics keys of an OPENCV camera."""
     fx, fy, cx, cy, k1, k2, p1, p2 = (float(v) for v in camera.params)
-    intrinsics = {"w": int(camera.width), "h": int(camera.height), "fl_x": fx, "fl_y": fy, "cx": cx, "cy": cy, "k1": k1, "k2": k2, "p1": p1, "p2": p2}
+    return {"w": int(camera.width), "h": int(camera.height), "fl_x": fx, "fl_y": fy, "cx": cx, "cy": cy,
+            "k1": k1, "k2": k2, "p1": p1, "p2": p2}
+
+
+def to_sparse_model(reconstruction: pycolmap.Reconstruction) -> SparseModel:
+    """Plain arrays of a reconstruction (one or more OPENCV cameras)."""
+    cameras = reconstruction.cameras
+    odd = sorted({camera.model_name for camera in cameras.values() if camera.model_name != _CAMERA_MODEL})
+    if odd:
+        raise ProcessDataError(f"expected {_CAMERA_MODEL} cameras in the reconstruction, got {', '.join(odd)}; "
+                               "pass --overwrite to start over")
     registered = sorted((image.name, image_id) for image_id, image in reconstruction.images.items() if image.has_pose)
+    camera_ids = [int(reconstruction.images[image_id].camera_id) for _, image_id in registered]
+    intrinsics_of = {camera_id: _intrinsics(cameras[camera_id]) for camera_id in set(camera_ids)}
     poses = np.zeros((len(registered), 4, 4))
     for k, (_, image_id) in enumerate(registered):
         poses[k] = np.linalg.inv(np.vstack([reconstruction.images[image_id].cam_from_world().matrix(), [0.0, 0.0, 0.0, 1.0]]))
@@ -291,7 +327,8 @@ def to_sparse_model(reconstruction: pycolmap.Reconstruction) -> SparseModel:
         names=[name for name, _ in registered],
         camera_to_world=poses,
         image_ids=[image_id for _, image_id in registered],
-        intrinsics=intrinsics,
+        intrinsics=[intrinsics_of[camera_id] for camera_id in camera_ids],
+        camera_ids=camera_ids,
         points=xyz,
         colours=rgb,
         mean_reprojection_error=float(reconstruction.compute_mean_reprojection_error()),

@@ -8,6 +8,9 @@ SCENE/images/ (the registered photos, hard-linked or copied), SCENE/images_2, _4
 SCENE/sparse_pc.ply. With EXIF GPS in every photo the scene is in metres, east-north-up about the
 photos' mean position; without, in COLMAP's units with +z along the cameras' mean up direction.
 
+Photos of several cameras or sizes each get their camera's own intrinsics (per frame in
+transforms.json). A photo that cannot be read or is not registered is left out and named.
+
 SCENE/colmap keeps the database and the reconstruction: run the same command again to resume
 (finished stages are skipped); --overwrite starts over. The photos are only read.
 
@@ -23,14 +26,14 @@ import sys
 import time
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator, List, NoReturn, Optional
+from typing import Dict, Iterator, List, NoReturn, Optional, Tuple
 
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 
 from scalar_nerfstudio.process import align, scene
 from scalar_nerfstudio.process.errors import ProcessDataError
-from scalar_nerfstudio.process.photos import inspect_photos, list_photos
+from scalar_nerfstudio.process.photos import PhotoSet, inspect_photos, list_photos
 
 try:
     from scalar_nerfstudio.process import sfm
@@ -108,6 +111,8 @@ def run(args: argparse.Namespace, err: Console) -> int:
     with _progress(err) as progress:
         _, advance, _ = _stage(progress, "checking photos", len(list_photos(args.images)) or None)
         photos = inspect_photos(args.images, progress=advance, workers=workers)
+        for _, why in photos.unreadable:
+            err.print(f"left out {why}", markup=False, highlight=False, soft_wrap=True)
         matching = sfm.resolve_matching(args.matching, photos)
         if args.overwrite:
             scene.remove_outputs(args.output)
@@ -158,21 +163,46 @@ def run(args: argparse.Namespace, err: Console) -> int:
             intrinsics=model.intrinsics, points=model.points, colours=model.colours, frame=frame, workers=workers, advance=advance,
         )
         timings["writing"] = time.monotonic() - clock
-    _report(photos.names, model, frame, others=sfm.other_models(workspace), transforms=transforms, seconds=time.monotonic() - started,
-            timings=timings)
+    _report(photos, model, frame, others=sfm.other_models(workspace), transforms=transforms,
+            seconds=time.monotonic() - started, timings=timings)
     return 0
 
 
-def _report(all_names: List[str], model, frame: align.CaptureFrame, *, others: List[int], transforms: Path, seconds: float,
-            timings: dict) -> None:
-    registered = set(model.names)
-    missing = [name for name in all_names if name not in registered]
-    share = 100.0 * len(registered) / len(all_names)
-    print(f"registered {len(registered)} of {len(all_names)} photos ({share:.1f} %), mean reprojection error {model.mean_reprojection_error:.3f} px, "
-                  f"{len(model.points)} sparse points, {seconds / 60:.1f} min")
+def left_out(photos: PhotoSet, registered: List[str]) -> List[Tuple[str, str]]:
+    """(name, why) of every photo of the folder not in the scene, sorted by name: "cannot be read" (it
+    does not decode) or "not registered" (structure-from-motion did not place it)."""
+    placed = set(registered)
+    out = [(name, "cannot be read") for name, _ in photos.unreadable]
+    out += [(name, "not registered") for name in photos.names if name not in placed]
+    return sorted(out)
+
+
+def _cameras_line(photos: PhotoSet, model) -> str:
+    """E.g. ``2 cameras: 320x240 px, courtyard: fl_x 256.1, fl_y 256.0 px (16 photos); ...``: each
+    registered camera's intrinsics, described by its photos' size and EXIF camera."""
+    camera_of = photos.camera_of()
+    seen: Dict[int, List[str]] = {}
+    for name, camera_id in zip(model.names, model.camera_ids):
+        seen.setdefault(camera_id, []).append(name)
+    parts = []
+    for camera_id, names in seen.items():
+        values = model.intrinsics[model.names.index(names[0])]
+        parts.append(f"{camera_of[names[0]].describe()}: fl_x {values['fl_x']:.1f}, fl_y {values['fl_y']:.1f} px "
+                     f"({len(names)} photo{'s' if len(names) != 1 else ''})")
+    return f"{len(parts)} camera{'s' if len(parts) != 1 else ''}: " + "; ".join(parts)
+
+
+def _report(photos: PhotoSet, model, frame: align.CaptureFrame, *, others: List[int], transforms: Path,
+            seconds: float, timings: dict) -> None:
+    total = photos.num_in_folder
+    share = 100.0 * len(model.names) / total
+    print(f"registered {len(model.names)} of {total} photos ({share:.1f} %), mean reprojection "
+          f"error {model.mean_reprojection_error:.3f} px, {len(model.points)} sparse points, {seconds / 60:.1f} min")
+    print(_cameras_line(photos, model))
     print(f"frame: {frame.describe()}")
+    missing = left_out(photos, model.names)
     if missing:
-        print(f"could not place {len(missing)} photo(s): {', '.join(missing)}")
+        print(f"left out {len(missing)} of {total} photos: " + ", ".join(f"{name} ({why})" for name, why in missing))
     if others:
         print(f"({len(others)} smaller separate reconstruction(s) of {', '.join(map(str, others))} photos were left out)")
     print(f"wrote {transforms} (" + ", ".join(f"{name} {value:.0f} s" for name, value in timings.items()) + ")")
