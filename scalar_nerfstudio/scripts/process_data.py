@@ -3,10 +3,11 @@
   scalar-nerf-process-data --images PHOTOS --output SCENE
 
 Stages: check the photos; SIFT features on each photo resized to --max-image-size; match pairs
-(--matching); incremental mapping; write SCENE/transforms.json (OPENCV camera, OpenGL axes),
-SCENE/images/ (the registered photos, hard-linked or copied), SCENE/images_2, _4, _8 and
-SCENE/sparse_pc.ply. With EXIF GPS in every photo the scene is in metres, east-north-up about the
-photos' mean position; without, in COLMAP's units with +z along the cameras' mean up direction.
+(--matching); mapping (--mapper: incremental, or global for large captures); write
+SCENE/transforms.json (OPENCV camera, OpenGL axes), SCENE/images/ (the registered photos,
+hard-linked or copied), SCENE/images_2, _4, _8 and SCENE/sparse_pc.ply. With EXIF GPS in every
+photo the scene is in metres, east-north-up about the photos' mean position; without, in COLMAP's
+units with +z along the cameras' mean up direction.
 
 Photos of several cameras or sizes each get their camera's own intrinsics (per frame in
 transforms.json). A photo that cannot be read or is not registered is left out and named.
@@ -43,6 +44,7 @@ except ImportError as _error:  # pycolmap is the optional "process" extra
 
 PROG = "scalar-nerf-process-data"
 MATCHING = ("auto", "spatial", "sequential", "exhaustive")
+MAPPERS = ("auto", "incremental", "global", "hierarchical")
 
 
 class _Parser(argparse.ArgumentParser):
@@ -72,6 +74,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--matching", choices=MATCHING, default="auto",
                         help="pairs to match: spatial (nearest photos by EXIF GPS), sequential (next photos by file name), "
                              "exhaustive (all pairs); auto: spatial if every photo has GPS, else exhaustive up to 50 photos, else sequential")
+    parser.add_argument("--mapper", choices=MAPPERS, default="auto",
+                        help="how the poses are solved from the matches: incremental (one photo at a time: robust, "
+                             "its time grows fast with the photos), global (GLOMAP: all at once, for thousands of "
+                             "photos), hierarchical (incremental on overlapping clusters, merged); auto: incremental "
+                             "below 300 photos, else global")
     parser.add_argument("--spatial-neighbors", type=_positive_int, default=20, help="spatial: photos each photo is matched with (default 20)")
     parser.add_argument("--sequential-overlap", type=_positive_int, default=10, help="sequential: following photos each photo is matched with (default 10)")
     parser.add_argument("--threads", type=int, default=-1, help="CPU threads for COLMAP and for writing images (-1: all cores)")
@@ -114,6 +121,7 @@ def run(args: argparse.Namespace, err: Console) -> int:
         for _, why in photos.unreadable:
             err.print(f"left out {why}", markup=False, highlight=False, soft_wrap=True)
         matching = sfm.resolve_matching(args.matching, photos)
+        mapper = sfm.resolve_mapper(args.mapper, len(photos.photos))
         if args.overwrite:
             scene.remove_outputs(args.output)
         workspace, stages = sfm.open_workspace(args.output / "colmap", photos, options)
@@ -142,15 +150,18 @@ def run(args: argparse.Namespace, err: Console) -> int:
             stages["mapped"] = False  # new matches: map again
             workspace.write_stages(stages)
 
-        if stages["mapped"] and workspace.sparse.is_dir():
-            _done(progress, "mapping: done earlier")
+        if stages["mapped"] == mapper and workspace.sparse.is_dir():
+            _done(progress, f"mapping ({mapper}): done earlier")
             reconstruction = sfm.load_model(workspace)
         else:
-            _, advance, tick = _stage(progress, "mapping (photos registered)", len(photos.names))
+            counted = mapper == "incremental"  # the only mapper that reports each photo it registers
+            what = f"mapping ({mapper}{', photos registered' if counted else ''})"
+            _, advance, tick = _stage(progress, what, len(photos.names) if counted else None)
             clock = time.monotonic()
-            reconstruction = sfm.map_photos(workspace, photos, options=options, on_image=advance, tick=tick)
+            reconstruction = sfm.map_photos(workspace, photos, mapper=mapper, options=options, on_image=advance,
+                                            tick=tick)
             timings["mapping"] = time.monotonic() - clock
-            stages["mapped"] = True
+            stages["mapped"] = mapper
             workspace.write_stages(stages)
 
         model = sfm.to_sparse_model(reconstruction)
@@ -163,7 +174,7 @@ def run(args: argparse.Namespace, err: Console) -> int:
             intrinsics=model.intrinsics, points=model.points, colours=model.colours, frame=frame, workers=workers, advance=advance,
         )
         timings["writing"] = time.monotonic() - clock
-    _report(photos, model, frame, others=sfm.other_models(workspace), transforms=transforms,
+    _report(photos, model, frame, mapper=mapper, others=sfm.other_models(workspace), transforms=transforms,
             seconds=time.monotonic() - started, timings=timings)
     return 0
 
@@ -192,11 +203,11 @@ def _cameras_line(photos: PhotoSet, model) -> str:
     return f"{len(parts)} camera{'s' if len(parts) != 1 else ''}: " + "; ".join(parts)
 
 
-def _report(photos: PhotoSet, model, frame: align.CaptureFrame, *, others: List[int], transforms: Path,
+def _report(photos: PhotoSet, model, frame: align.CaptureFrame, *, mapper: str, others: List[int], transforms: Path,
             seconds: float, timings: dict) -> None:
     total = photos.num_in_folder
     share = 100.0 * len(model.names) / total
-    print(f"registered {len(model.names)} of {total} photos ({share:.1f} %), mean reprojection "
+    print(f"registered {len(model.names)} of {total} photos ({share:.1f} %) by {mapper} mapping, mean reprojection "
           f"error {model.mean_reprojection_error:.3f} px, {len(model.points)} sparse points, {seconds / 60:.1f} min")
     print(_cameras_line(photos, model))
     print(f"frame: {frame.describe()}")
