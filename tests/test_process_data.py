@@ -1,20 +1,13 @@
 """``scalar-nerf-process-data`` (photos -> nerfstudio scene by pycolmap SfM) and ``scalar-nerf-export-frame``.
 
-The capture with known poses: the project's courtyard (its geometry, ray-cast by
-``scenes.courtyard.render_rays``) seen by 24 cameras on a ring looking inwards, 320 x 240 JPEGs with
-EXIF focal length and GPS positions (exact: the world's metres as east-north-up about a reference
-point). The courtyard's own texture is replaced here by a 3-D value noise: the generator's checker
-flips on the round-off sign of hit points that lie on its cell edges (the ground z = 0 and box faces
-at multiples of 0.5 m), a speckle that differs between views, and SIFT then finds too few
-consistent features to place the cameras.
+The capture with known poses (24 views of the courtyard with EXIF focal length and GPS) is
+``process_capture.render_capture``'s; photos of two cameras and photos that cannot be used are
+test_process_data_cameras.py's.
 """
 
 from __future__ import annotations
 
-import contextlib
-import io
 import json
-import math
 import shutil
 import time
 from pathlib import Path
@@ -22,113 +15,19 @@ from typing import Dict, Tuple
 
 import numpy as np
 import pytest
-from PIL import ExifTags, Image, TiffImagePlugin
+from PIL import Image
 
 from prerequisites import has_module, need, requires_pycolmap
-from scalar_nerfstudio.scenes.courtyard import DEFAULT_BOXES, look_at, render_rays
+from process_capture import (FOCAL_PX, HEIGHT, WIDTH, capture_exif, pose_errors, render_capture, run_process_data,
+                             scene_poses)
 from scalar_nerfstudio.process import geo
 from scalar_nerfstudio.process.errors import ProcessDataError
 from scalar_nerfstudio.process.export_frame import read_transform
 from scalar_nerfstudio.process.photos import read_photo
+from scalar_nerfstudio.scenes.courtyard import DEFAULT_BOXES
 from scalar_nerfstudio.scripts import process_data
 
 needs_pycolmap = requires_pycolmap
-
-#: Where the courtyard's world origin lies on Earth (lat, lon in degrees, altitude in m).
-GPS_ORIGIN = np.array([46.5197, 6.6323, 372.0])
-NUM_VIEWS, WIDTH, HEIGHT = 24, 320, 240
-FOCAL_PX = 0.8 * WIDTH
-
-
-# ------------------------------------------------------------------------------------ the capture
-
-
-def _hash(ix: np.ndarray, iy: np.ndarray, iz: np.ndarray, salt: int) -> np.ndarray:
-    h = (ix * 73856093) ^ (iy * 19349663) ^ (iz * 83492791) ^ (salt * 2654435761)
-    h = (h ^ (h >> 13)) * 1274126177
-    return ((h ^ (h >> 16)) & 0xFFFF) / 65535.0
-
-
-def _value_noise(points: np.ndarray, cell: float, salt: int) -> np.ndarray:
-    """[P, 3] world points -> [P] smooth 3-D value noise in [0, 1] with cells of ``cell`` metres."""
-    scaled = points / cell
-    corner = np.floor(scaled).astype(np.int64)
-    f = scaled - corner
-    f = f * f * (3.0 - 2.0 * f)
-    out = np.zeros(len(points))
-    for dx in (0, 1):
-        for dy in (0, 1):
-            for dz in (0, 1):
-                weight = (f[:, 0] if dx else 1 - f[:, 0]) * (f[:, 1] if dy else 1 - f[:, 1]) * (f[:, 2] if dz else 1 - f[:, 2])
-                out += weight * _hash(corner[:, 0] + dx, corner[:, 1] + dy, corner[:, 2] + dz, salt)
-    return out
-
-
-def _dms(value: float) -> tuple:
-    value = abs(value)
-    degrees = int(value)
-    minutes = int((value - degrees) * 60.0)
-    seconds = (value - degrees - minutes / 60.0) * 3600.0
-    rational = TiffImagePlugin.IFDRational
-    return rational(degrees, 1), rational(minutes, 1), rational(int(round(seconds * 1e5)), 100000)
-
-
-def _exif(gps: np.ndarray = None, *, model: str = "courtyard", focal_px: float = FOCAL_PX,
-          size: Tuple[int, int] = (WIDTH, HEIGHT)) -> Image.Exif:
-    """EXIF of a test photo: make/model, 35-mm equivalent focal length of ``focal_px`` at ``size``
-    (diagonal, as COLMAP reads it) and, when given, GPS [3] lat, lon, alt."""
-    exif = Image.Exif()
-    exif[ExifTags.Base.Make], exif[ExifTags.Base.Model] = "scalar-nerf", model
-    focal_35mm = int(round(focal_px * 43.27 / math.hypot(*size)))
-    exif.get_ifd(ExifTags.IFD.Exif)[ExifTags.Base.FocalLengthIn35mmFilm] = focal_35mm
-    if gps is not None:
-        tags = ExifTags.GPS
-        exif.get_ifd(ExifTags.IFD.GPSInfo).update({
-            tags.GPSVersionID: b"\x02\x03\x00\x00",
-            tags.GPSLatitudeRef: "N" if gps[0] >= 0 else "S", tags.GPSLatitude: _dms(gps[0]),
-            tags.GPSLongitudeRef: "E" if gps[1] >= 0 else "W", tags.GPSLongitude: _dms(gps[1]),
-            tags.GPSAltitudeRef: b"\x00" if gps[2] >= 0 else b"\x01", tags.GPSAltitude: TiffImagePlugin.IFDRational(int(round(abs(gps[2]) * 1000)), 1000),
-        })
-    return exif
-
-
-def render_capture(folder: Path, num_views: int = NUM_VIEWS, gps: bool = True) -> Dict[str, np.ndarray]:
-    """Write the ring capture's JPEGs into ``folder``; returns name -> [4, 4] true camera-to-world
-    (OpenGL axes, world metres: x east, y north, z up)."""
-    folder.mkdir(parents=True, exist_ok=True)
-    u, v = np.meshgrid(np.arange(WIDTH) + 0.5, np.arange(HEIGHT) + 0.5)
-    camera_dirs = np.stack([(u - WIDTH / 2) / FOCAL_PX, -(v - HEIGHT / 2) / FOCAL_PX, -np.ones_like(u)], axis=-1).reshape(-1, 3)
-    camera_dirs /= np.linalg.norm(camera_dirs, axis=1, keepdims=True)
-    truth = {}
-    for i, angle in enumerate(np.linspace(0.0, 2.0 * np.pi, num_views, endpoint=False)):
-        position = np.array([4.5 * np.cos(angle), 4.5 * np.sin(angle), 1.8 + 0.4 * np.sin(3 * angle)])
-        c2w = look_at(position, np.array([0.3 * np.cos(5 * angle), 0.3 * np.sin(5 * angle), 0.6]))
-        directions = camera_dirs @ c2w[:3, :3].T
-        origins = np.broadcast_to(c2w[:3, 3], directions.shape)
-        rgb, depth = render_rays(origins, directions)
-        hit = np.isfinite(depth)
-        points = origins[hit] + directions[hit] * depth[hit, None]
-        grey = 0.25 + 0.35 * _value_noise(points, 0.6, 1) + 0.25 * _value_noise(points, 0.15, 2) + 0.15 * _value_noise(points, 0.05, 3)
-        rgb[hit] = grey[:, None] * np.array([1.0, 0.95, 0.85])
-        name = f"view_{i:03d}.jpg"
-        image = Image.fromarray((rgb.reshape(HEIGHT, WIDTH, 3) * 255.0 + 0.5).astype(np.uint8))
-        position_gps = geo.enu_to_wgs84(position[None], GPS_ORIGIN)[0] if gps else None
-        image.save(folder / name, quality=95, exif=_exif(position_gps))
-        truth[name] = c2w
-    return truth
-
-
-def _run(*args: str) -> Tuple[int, str, str]:
-    """scalar-nerf-process-data in this process: (exit code, stdout, stderr)."""
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        code = process_data.main([*args, "--threads", "2"])
-    return code, out.getvalue(), err.getvalue()
-
-
-def _scene_poses(scene: Path) -> Dict[str, np.ndarray]:
-    transforms = json.loads((scene / "transforms.json").read_text())
-    return {Path(f["file_path"]).name: np.array(f["transform_matrix"]) for f in transforms["frames"]}
 
 
 @pytest.fixture(scope="module")
@@ -143,77 +42,21 @@ def processed(capture, tmp_path_factory) -> Tuple[Path, str, float]:
     need("pycolmap", has_module("pycolmap"))
     scene = tmp_path_factory.mktemp("processed") / "scene"
     start = time.monotonic()
-    code, out, err = _run("--images", str(capture[0]), "--output", str(scene))
+    code, out, err = run_process_data("--images", str(capture[0]), "--output", str(scene))
     assert code == 0, out + err
     return scene, out, time.monotonic() - start
 
 
-#: The second camera of the two-camera capture: every third view (from view 1) cropped to its centre
-#: 240 x 180 and enlarged 1.25x, so a 300 x 225 photo with focal 1.25 x 256 = 320 px, principal point
-#: at its centre (a narrower lens: 50 degrees across against 64).
-TELE_VIEWS = range(1, NUM_VIEWS, 3)
-TELE_SIZE, TELE_FOCAL_PX = (300, 225), 1.25 * FOCAL_PX
-_TELE_CROP = (40, 30, 280, 210)
-
-
-@pytest.fixture(scope="module")
-def two_cameras(capture, tmp_path_factory) -> Tuple[Path, Dict[str, np.ndarray]]:
-    """The capture's photos, a third of them as the second camera (:data:`TELE_VIEWS`; EXIF model
-    "tele", its own size and focal length, GPS kept), plus two photos that cannot be used:
-    ``broken.jpg`` (a truncated copy of a view) and ``noise.jpg`` (random pixels: nothing to match).
-    Returns (folder, name -> [4, 4] true camera-to-world of the 24 views)."""
-    folder = tmp_path_factory.mktemp("two-cameras") / "photos"
-    folder.mkdir()
-    for i, name in enumerate(sorted(capture[1])):
-        gps = geo.enu_to_wgs84(capture[1][name][None, :3, 3], GPS_ORIGIN)[0]
-        if i not in TELE_VIEWS:
-            shutil.copy(capture[0] / name, folder / name)
-            continue
-        with Image.open(capture[0] / name) as image:
-            tele = image.crop(_TELE_CROP).resize(TELE_SIZE, Image.Resampling.LANCZOS)
-        tele.save(folder / name, quality=95, exif=_exif(gps, model="tele", focal_px=TELE_FOCAL_PX, size=TELE_SIZE))
-    data = (capture[0] / "view_000.jpg").read_bytes()
-    (folder / "broken.jpg").write_bytes(data[: len(data) // 2])
-    noise = np.random.default_rng(0).integers(0, 255, (HEIGHT, WIDTH, 3), dtype=np.uint8)
-    centre_gps = geo.enu_to_wgs84(np.array([[0.0, 0.0, 2.0]]), GPS_ORIGIN)[0]
-    Image.fromarray(noise).save(folder / "noise.jpg", quality=95, exif=_exif(centre_gps))
-    return folder, capture[1]
-
-
-@pytest.fixture(scope="module")
-def two_cameras_processed(two_cameras, tmp_path_factory) -> Tuple[Path, str, str]:
-    """(scene folder, stdout, stderr) of process-data on :func:`two_cameras`."""
-    need("pycolmap", has_module("pycolmap"))
-    scene = tmp_path_factory.mktemp("two-cameras-processed") / "scene"
-    code, out, err = _run("--images", str(two_cameras[0]), "--output", str(scene))
-    assert code == 0, out + err
-    return scene, out, err
-
-
 # ------------------------------------------------------------------------------ SfM on the capture
-
-
-def _pose_errors(recovered: Dict[str, np.ndarray], truth: Dict[str, np.ndarray]) -> Tuple[geo.Similarity, np.ndarray, np.ndarray, float]:
-    """Fit recovered -> true camera centres; (similarity, [N] rotation errors in degrees, [N] position
-    errors in metres, the scene's size: the largest distance between two true camera centres)."""
-    names = sorted(recovered)
-    rec = np.stack([recovered[n] for n in names])
-    true = np.stack([truth[n] for n in names])
-    sim = geo.umeyama(rec[:, :3, 3], true[:, :3, 3])
-    aligned = sim.apply_to_poses(rec)
-    rotation_error = geo.rotation_angle_deg(aligned[:, :3, :3], true[:, :3, :3])
-    position_error = np.linalg.norm(aligned[:, :3, 3] - true[:, :3, 3], axis=1)
-    size = float(max(np.linalg.norm(a - b) for a in true[:, :3, 3] for b in true[:, :3, 3]))
-    return sim, rotation_error, position_error, size
 
 
 @needs_pycolmap
 def test_process_data_recovers_the_known_poses(processed, capture) -> None:
     scene, out, seconds = processed
     truth = capture[1]
-    poses = _scene_poses(scene)
+    poses = scene_poses(scene)
     assert f"registered {len(truth)} of {len(truth)} photos (100.0 %) by incremental mapping" in out, out
-    _, rotation_error, position_error, size = _pose_errors(poses, truth)
+    _, rotation_error, position_error, size = pose_errors(poses, truth)
     summary = (
         f"{len(poses)}/{len(truth)} registered in {seconds:.0f} s; after a similarity fit: rotation error max "
         f"{rotation_error.max():.2f} deg (median {np.median(rotation_error):.2f}), position error max "
@@ -232,9 +75,9 @@ def test_gps_makes_the_frame_metric_and_up_up(processed, capture) -> None:
     scene, out, _ = processed
     transforms = json.loads((scene / "transforms.json").read_text())
     assert transforms["capture_frame"]["kind"] == "enu" and "metres, east-north-up" in out, out
-    sim, _, _, _ = _pose_errors(_scene_poses(scene), capture[1])
+    sim, _, _, _ = pose_errors(scene_poses(scene), capture[1])
     turn = float(geo.rotation_angle_deg(sim.rotation[None], np.eye(3)[None])[0])
-    poses = _scene_poses(scene)
+    poses = scene_poses(scene)
     names = sorted(poses)
     rec = np.stack([poses[n][:3, 3] for n in names])
     true = np.stack([capture[1][n][:3, 3] for n in names])
@@ -245,63 +88,6 @@ def test_gps_makes_the_frame_metric_and_up_up(processed, capture) -> None:
     # 1.0000, turn 0.00 deg, distance ratios 0.997-1.004.
     assert abs(sim.scale - 1.0) < 0.01 and turn < 0.5 and np.all(np.abs(ratio - 1.0) < 0.02), summary
     print(summary)
-
-
-@needs_pycolmap
-def test_two_cameras_get_their_own_intrinsics_and_every_pose(two_cameras_processed, two_cameras) -> None:
-    """Photos of two cameras (sizes and focal lengths differ): each frame carries its camera's
-    intrinsics, its downscales are of its own size, the project's scene check and nerfstudio's
-    dataparser read the scene and a training batch is drawn from it; every pose is recovered."""
-    from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
-
-    from scalar_nerfstudio.data.datamanager import ScalarDataManagerConfig
-    from scalar_nerfstudio.data.validation import scan_scene
-
-    scene, out, _ = two_cameras_processed
-    truth = two_cameras[1]
-    transforms = json.loads((scene / "transforms.json").read_text())
-    assert not {"fl_x", "fl_y", "cx", "cy", "w", "h"} & set(transforms), "per-camera intrinsics belong in the frames"
-    tele = {f"view_{i:03d}.jpg" for i in TELE_VIEWS}
-    for frame in transforms["frames"]:
-        name = Path(frame["file_path"]).name
-        (w, h), focal = (TELE_SIZE, TELE_FOCAL_PX) if name in tele else ((WIDTH, HEIGHT), FOCAL_PX)
-        assert (frame["w"], frame["h"], frame["cx"], frame["cy"]) == (w, h, w / 2, h / 2), (name, frame)
-        # Measured: both focal lengths within 0.3 % of the truth.
-        assert abs(frame["fl_x"] - focal) < 0.02 * focal and abs(frame["fl_y"] - focal) < 0.02 * focal, (name, frame)
-        for factor in (2, 4, 8):
-            with Image.open(scene / f"images_{factor}" / name) as image:
-                assert image.size == (w // factor, h // factor), (name, factor)
-    assert "2 cameras: 320x240 px, scalar-nerf courtyard: fl_x" in out, out
-    assert "300x225 px, scalar-nerf tele: fl_x" in out, out
-    assert "(16 photos)" in out and "(8 photos)" in out, out
-    _, rotation_error, position_error, size = _pose_errors(_scene_poses(scene), truth)
-    summary = (f"rotation error max {rotation_error.max():.2f} deg, position error max "
-               f"{position_error.max() / size:.4f} of the scene")
-    # The bounds of test_process_data_recovers_the_known_poses (one camera).
-    assert len(_scene_poses(scene)) == len(truth), summary
-    assert rotation_error.max() < 0.5 and position_error.max() < 0.005 * size, summary
-    print(summary)
-    assert scan_scene(scene, downscale_factor=2).num_frames == len(truth)
-    config = ScalarDataManagerConfig(dataparser=NerfstudioDataParserConfig(data=scene, eval_mode="all"))
-    manager = config.setup(device="cpu")
-    cameras = manager.train_dataparser_outputs.cameras
-    assert sorted({int(w) for w in cameras.width.reshape(-1)}) == [TELE_SIZE[0], WIDTH]
-    ray_bundle, batch = manager.next_train(0)
-    assert batch["image"].shape[0] == ray_bundle.shape[0] > 0
-
-
-@needs_pycolmap
-def test_photos_that_cannot_be_used_are_named_and_left_out(two_cameras_processed, two_cameras) -> None:
-    """A photo that does not decode and one that SfM cannot place are named in the summary and left
-    out of the scene; every other photo is in it."""
-    scene, out, err = two_cameras_processed
-    assert "registered 24 of 26 photos" in out, out
-    assert "left out 2 of 26 photos: broken.jpg (cannot be read), noise.jpg (not registered)" in out, out
-    assert "left out" in err and "broken.jpg: cannot be decoded" in err, err
-    names = {Path(frame["file_path"]).name for frame in json.loads((scene / "transforms.json").read_text())["frames"]}
-    assert names == set(two_cameras[1])
-    assert sorted(p.name for p in (scene / "images").iterdir()) == sorted(two_cameras[1])
-    print(out)
 
 
 @needs_pycolmap
@@ -318,14 +104,14 @@ def test_global_mapper_recovers_the_known_poses(processed, capture, tmp_path, mo
     scene.mkdir()
     shutil.copytree(processed[0] / "colmap", scene / "colmap")
     start = time.monotonic()
-    code, out, err = _run("--images", str(capture[0]), "--output", str(scene), "--mapper", "global")
+    code, out, err = run_process_data("--images", str(capture[0]), "--output", str(scene), "--mapper", "global")
     assert code == 0, out + err
     seconds = time.monotonic() - start
     assert calls == ["global_mapping"], calls
     assert "features: done earlier" in err and "matching (spatial): done earlier" in err, err
     truth = capture[1]
     assert f"registered {len(truth)} of {len(truth)} photos (100.0 %) by global mapping" in out, out
-    _, rotation_error, position_error, size = _pose_errors(_scene_poses(scene), truth)
+    _, rotation_error, position_error, size = pose_errors(scene_poses(scene), truth)
     summary = (f"global mapping in {seconds:.0f} s: rotation error max {rotation_error.max():.2f} deg, position error "
                f"max {position_error.max() / size:.4f} of the scene's {size:.1f} m")
     # The incremental test's bounds (0.5 deg, 0.5 % of the scene's 9 m): global mapping ends in a bundle
@@ -362,7 +148,7 @@ def test_scene_files_images_downscales_and_sparse_points(processed, capture) -> 
             with Image.open(scene / f"images_{factor}" / name) as image:
                 assert image.size == (WIDTH // factor, HEIGHT // factor)
     points = np.asarray(o3d.io.read_point_cloud(str(scene / "sparse_pc.ply")).points)
-    sim, _, _, _ = _pose_errors(_scene_poses(scene), capture[1])
+    sim, _, _, _ = pose_errors(scene_poses(scene), capture[1])
     distance = _courtyard_distance(sim.apply(points))
     summary = f"{len(points)} sparse points; distance to the courtyard's surfaces: median {np.median(distance):.3f} m, 90 % {np.quantile(distance, 0.9):.3f} m"
     # Measured: 2895 points, median 0.006 m, 90 % within 0.027 m.
@@ -383,14 +169,14 @@ def test_rerun_resumes_and_without_gps_the_frame_is_colmaps_turned_up(processed,
     scene.mkdir()
     shutil.copytree(processed[0] / "colmap", scene / "colmap")
     start = time.monotonic()
-    code, out, err = _run("--images", str(photos), "--output", str(scene))
+    code, out, err = run_process_data("--images", str(photos), "--output", str(scene))
     assert code == 0, out + err
     assert time.monotonic() - start < 10.0 and "done earlier" in err, err
     transforms = json.loads((scene / "transforms.json").read_text())
     assert transforms["capture_frame"]["kind"] == "up" and "COLMAP's units" in out and "level image rows" in out, out
-    poses = _scene_poses(scene)
+    poses = scene_poses(scene)
     assert np.allclose(np.stack(list(poses.values()))[:, :3, 3].mean(axis=0), 0.0, atol=1e-6)
-    sim, rotation_error, position_error, size = _pose_errors(poses, capture[1])
+    sim, rotation_error, position_error, size = pose_errors(poses, capture[1])
     tilt = float(np.degrees(np.arccos(np.clip(sim.rotation[2, 2], -1.0, 1.0))))  # scene z vs world z
     assert rotation_error.max() < 0.5 and position_error.max() < 0.005 * size and tilt < 0.5, f"tilt {tilt:.2f} deg"
 
@@ -414,7 +200,7 @@ def test_nerfstudio_reads_the_scene_and_export_frame_undoes_its_transform(proces
     transform = read_transform(tmp_path / "run" / "dataparser_transforms.json")
     model_poses = outputs.cameras.camera_to_worlds
     original = outputs.transform_poses_to_original_space(model_poses, camera_convention="opengl")
-    poses = _scene_poses(scene)
+    poses = scene_poses(scene)
     expected = np.stack([poses[Path(p).name][:3] for p in outputs.image_filenames])
     assert np.allclose(original.numpy(), expected, atol=1e-4)
     assert np.allclose(transform.to_capture(model_poses[:, :3, 3].numpy()), expected[:, :3, 3], atol=1e-4)
@@ -433,7 +219,7 @@ def test_without_pycolmap_the_command_says_how_to_install_it_and_writes_nothing(
     _small_photos(tmp_path / "photos")
     monkeypatch.setattr(process_data, "sfm", None)
     monkeypatch.setattr(process_data, "_IMPORT_ERROR", "No module named 'pycolmap'", raising=False)
-    code, _, err = _run("--images", str(tmp_path / "photos"), "--output", str(tmp_path / "scene"))
+    code, _, err = run_process_data("--images", str(tmp_path / "photos"), "--output", str(tmp_path / "scene"))
     _refused(code, err, "pycolmap is not installed", 'pip install "scalar-nerfstudio[process]"')
     assert not (tmp_path / "scene").exists()
 
@@ -442,10 +228,10 @@ def test_without_pycolmap_the_command_says_how_to_install_it_and_writes_nothing(
 def test_a_folder_without_photos_is_refused(tmp_path) -> None:
     (tmp_path / "empty").mkdir()
     (tmp_path / "empty" / "notes.txt").write_text("no photos here")
-    code, _, err = _run("--images", str(tmp_path / "empty"), "--output", str(tmp_path / "scene"))
+    code, _, err = run_process_data("--images", str(tmp_path / "empty"), "--output", str(tmp_path / "scene"))
     _refused(code, err, "no photos")
     assert not (tmp_path / "scene").exists()
-    code, _, err = _run("--images", str(tmp_path / "missing"), "--output", str(tmp_path / "scene"))
+    code, _, err = run_process_data("--images", str(tmp_path / "missing"), "--output", str(tmp_path / "scene"))
     _refused(code, err, "no such folder")
 
 
@@ -458,12 +244,12 @@ def _small_photos(folder: Path, count: int = 4, size: Tuple[int, int] = (64, 48)
 
 @needs_pycolmap  # without it the command stops first, saying how to install it
 def test_corrupt_jpegs_leaving_too_few_photos_are_named_and_refused(tmp_path) -> None:
-    """A corrupt photo among enough good ones is left out (test_photos_that_cannot_be_used_are_named_and_left_out);
-    when too few remain, the folder is refused, naming the corrupt ones, before anything is written."""
+    """A corrupt photo among enough good ones is left out (test_process_data_cameras.py); when too few
+    remain, the folder is refused, naming the corrupt ones, before anything is written."""
     _small_photos(tmp_path / "photos", count=3)
     data = (tmp_path / "photos" / "p2.jpg").read_bytes()
     (tmp_path / "photos" / "p2.jpg").write_bytes(data[: len(data) // 2])
-    code, _, err = _run("--images", str(tmp_path / "photos"), "--output", str(tmp_path / "scene"))
+    code, _, err = run_process_data("--images", str(tmp_path / "photos"), "--output", str(tmp_path / "scene"))
     _refused(code, err, "1 of 3 photo(s) cannot be decoded, leaving 2", "p2.jpg", "at least 3")
     assert "p1.jpg" not in err and not (tmp_path / "scene").exists()
 
@@ -484,7 +270,7 @@ def test_the_automatic_mapper_is_incremental_below_the_threshold_and_global_from
 @needs_pycolmap  # without it the command stops first, saying how to install it
 def test_spatial_matching_without_gps_is_refused(tmp_path) -> None:
     _small_photos(tmp_path / "photos")
-    code, _, err = _run("--images", str(tmp_path / "photos"), "--output", str(tmp_path / "scene"), "--matching", "spatial")
+    code, _, err = run_process_data("--images", str(tmp_path / "photos"), "--output", str(tmp_path / "scene"), "--matching", "spatial")
     _refused(code, err, "--matching spatial", "4 of 4 photo(s) have none")
     assert not (tmp_path / "scene").exists()
 
@@ -493,7 +279,7 @@ def test_spatial_matching_without_gps_is_refused(tmp_path) -> None:
 def test_an_output_that_cannot_be_written_is_an_error_not_a_traceback(tmp_path) -> None:
     _small_photos(tmp_path / "photos")
     (tmp_path / "a-file").write_text("")
-    code, _, err = _run("--images", str(tmp_path / "photos"), "--output", str(tmp_path / "a-file" / "scene"))
+    code, _, err = run_process_data("--images", str(tmp_path / "photos"), "--output", str(tmp_path / "a-file" / "scene"))
     _refused(code, err, "a-file", "not written")
     assert "Traceback" not in err
 
@@ -503,10 +289,10 @@ def test_an_output_folder_with_other_files_or_holding_the_photos_is_refused(tmp_
     _small_photos(tmp_path / "photos")
     (tmp_path / "busy").mkdir()
     (tmp_path / "busy" / "thesis.tex").write_text("")
-    code, _, err = _run("--images", str(tmp_path / "photos"), "--output", str(tmp_path / "busy"))
+    code, _, err = run_process_data("--images", str(tmp_path / "photos"), "--output", str(tmp_path / "busy"))
     _refused(code, err, "thesis.tex", "did not write")
     _small_photos(tmp_path / "scene" / "images")
-    code, _, err = _run("--images", str(tmp_path / "scene" / "images"), "--output", str(tmp_path / "scene"))
+    code, _, err = run_process_data("--images", str(tmp_path / "scene" / "images"), "--output", str(tmp_path / "scene"))
     _refused(code, err, "rewrites")
     assert sorted(p.name for p in (tmp_path / "scene").iterdir()) == ["images"]
 
@@ -514,12 +300,12 @@ def test_an_output_folder_with_other_files_or_holding_the_photos_is_refused(tmp_
 @needs_pycolmap
 def test_photos_that_do_not_overlap_are_refused_without_a_scene(tmp_path) -> None:
     _small_photos(tmp_path / "photos", count=4, size=(160, 120))
-    code, _, err = _run("--images", str(tmp_path / "photos"), "--output", str(tmp_path / "scene"))
+    code, _, err = run_process_data("--images", str(tmp_path / "photos"), "--output", str(tmp_path / "scene"))
     _refused(code, err, "could not place any photos")
     assert not (tmp_path / "scene" / "transforms.json").exists()
     assert sorted(p.name for p in (tmp_path / "scene").iterdir()) == ["colmap"]  # kept for a re-run
     # Other options over that workspace: refused until --overwrite.
-    code, _, err = _run("--images", str(tmp_path / "photos"), "--output", str(tmp_path / "scene"), "--max-image-size", "500")
+    code, _, err = run_process_data("--images", str(tmp_path / "photos"), "--output", str(tmp_path / "scene"), "--max-image-size", "500")
     _refused(code, err, "--overwrite")
 
 
@@ -527,9 +313,9 @@ def test_photos_that_do_not_overlap_are_refused_without_a_scene(tmp_path) -> Non
 
 
 def test_gps_read_from_exif_signs_and_altitude(tmp_path) -> None:
-    Image.new("RGB", (8, 8)).save(tmp_path / "a.jpg", exif=_exif(np.array([-33.8568, -151.2153, -12.5])))
+    Image.new("RGB", (8, 8)).save(tmp_path / "a.jpg", exif=capture_exif(np.array([-33.8568, -151.2153, -12.5])))
     photo = read_photo(tmp_path / "a.jpg")
     assert photo.camera == "scalar-nerf courtyard" and photo.size == (8, 8)
     assert np.allclose(photo.gps, (-33.8568, -151.2153, -12.5), atol=1e-7)
-    Image.new("RGB", (8, 8)).save(tmp_path / "b.jpg", exif=_exif(np.array([0.0, 0.0, 5.0])))
+    Image.new("RGB", (8, 8)).save(tmp_path / "b.jpg", exif=capture_exif(np.array([0.0, 0.0, 5.0])))
     assert read_photo(tmp_path / "b.jpg").gps is None  # a camera's "no fix"
