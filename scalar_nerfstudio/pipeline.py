@@ -29,6 +29,7 @@ from scalar_nerfstudio.blocks.split import BlockSplit, BlockSplitError, load_blo
 from scalar_nerfstudio.data.datamanager import ScalarDataManagerConfig, camera_centres, camera_layout, training_image_names
 from scalar_nerfstudio.data.depth import scene_radius_logged
 from scalar_nerfstudio.engine.contract import Phase
+from scalar_nerfstudio.engine.eval_progress import EvalProgress
 from scalar_nerfstudio.engine.process_settings import apply_process_settings
 from scalar_nerfstudio.models.scene_model import BlockInit, DecoderMode, ScalarSceneModel, ScalarSceneModelConfig
 from scalar_nerfstudio.pipeline_text import format_eval_metrics, format_plan_report
@@ -436,8 +437,10 @@ class ScalarPipeline(VanillaPipeline):
     def get_average_eval_image_metrics(
         self, step: Optional[int] = None, output_path: Optional[Path] = None, get_std: bool = False
     ) -> Dict[str, float]:
-        """nerfstudio's average over the eval images, also printed (``ns-eval`` itself only says where it saved them)."""
-        metrics = super().get_average_eval_image_metrics(step=step, output_path=output_path, get_std=get_std)
+        """nerfstudio's average over the eval images, with a line per image (images done, time left: nerfstudio's
+        bar has neither), and the average printed (``ns-eval`` itself only says where it saved them)."""
+        loader = EvalProgress(self.datamanager.fixed_indices_eval_dataloader, report=CONSOLE.print)
+        metrics = self.get_average_image_metrics(loader, "eval", step=step, output_path=output_path, get_std=get_std)
         CONSOLE.print(format_eval_metrics(metrics, str(self.model.fusion_mode)))
         return metrics
 

@@ -9,6 +9,7 @@ import time
 from pathlib import Path
 from unittest import mock
 
+import numpy as np
 import pytest
 
 from prerequisites import REPO
@@ -47,7 +48,7 @@ def test_quick_benchmark_end_to_end(tmp_path: Path) -> None:
         steps = [p["step"] for p in results[name]["curve"]]
         times = [p["train_s"] for p in results[name]["curve"]]
         assert steps == [10, 20, 30, 32], f"{name}: evaluated every 10 steps and at the end"
-        assert times == sorted(times) and all(5 < p["psnr"] < 60 for p in results[name]["curve"])
+        assert times == sorted(times)
     assert scalar["num_blocks"] == 2 and scalar["parameters"] > ngp["parameters"]
     # nerfacto ran for the wall-clock the block variant took, and has no LPIPS (needs a download).
     nerfacto = results["nerfacto"]
@@ -72,13 +73,19 @@ def test_quick_benchmark_end_to_end(tmp_path: Path) -> None:
     # truth | ngp-t | scalar (neither auto nor auto-parallel ran) | its block colours, each run's PSNR on that view
     assert "## The blocks against the one model" in table and "(restart, `ngp-t`)" in table
     panels = report["heldout_view"]["panels"]
-    assert [p["variant"] for p in panels] == [None, "ngp-t", "scalar", "scalar"] and all(5 < p["psnr"] < 60 for p in panels[1:3])
+    assert [p["variant"] for p in panels] == [None, "ngp-t", "scalar", "scalar"]
     assert "![held-out view](heldout_view.png)" in table
-    # Every run keeps its final checkpoint (written after its timed steps): the blocks' run, loaded
-    # again from its folder, scores the held-out PSNR the benchmark reported for it.
-    reloaded = eval_renders(load_pipeline(Path(scalar["run_dir"])))[0]["psnr"]
-    assert abs(reloaded - scalar["final"]["psnr"]) < 0.05, (reloaded, scalar["final"])
-    assert list((Path(ngp["run_dir"]) / "nerfstudio_models").glob("step-*.ckpt"))
+    # The figures are the runs' own evaluations: every run keeps its final checkpoint (written after its
+    # timed steps), and loaded again from its folder it scores on the held-out views what its curve ends at,
+    # and on the held-out view what its panel says.
+    view = report["heldout_view"]["view"]
+    for name, panel in (("ngp-t", panels[1]), ("scalar", panels[2])):
+        pipeline = load_pipeline(Path(results[name]["run_dir"]))
+        metrics, images = eval_renders(pipeline)
+        assert abs(metrics["psnr"] - results[name]["final"]["psnr"]) < 0.05, (name, metrics["psnr"], results[name]["final"])
+        truth = pipeline.datamanager.eval_dataset[view]["image"][..., :3].numpy()
+        view_psnr = -10.0 * float(np.log10(np.mean((images[view] - truth) ** 2)))
+        assert abs(view_psnr - panel["psnr"]) < 0.05, (name, view_psnr, panel)
     # The same command with --resume trains nothing: every run is read back and reported the same.
     again = subprocess.run(
         ["scalar-nerf-benchmark", "--quick", "--output-dir", str(output), "--variants", "ngp-t", "scalar", "nerfacto",

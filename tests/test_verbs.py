@@ -168,6 +168,8 @@ def test_ns_eval_scores_the_run_above_its_untrained_model_and_fused_at_least_its
     result = ns_eval(run, tmp_path / "eval.json")
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     metrics = json.loads((tmp_path / "eval.json").read_text())["results"]
+    log = " ".join((result.stdout + result.stderr).split())
+    assert "eval image 1/" in log and "s per image, about" in log and "s per image, done in" in log  # images done, time left
     step_0 = untrained_psnr(run)
     assert metrics["psnr"] > step_0 + TRAINED_MARGIN_DB, (metrics["psnr"], step_0)
     assert 0.0 < metrics["ssim"] <= 1.0
