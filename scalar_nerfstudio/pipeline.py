@@ -17,7 +17,7 @@ import torch
 import tyro
 from nerfstudio.data.datamanagers.base_datamanager import DataManager
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
-from nerfstudio.pipelines.base_pipeline import Pipeline, VanillaPipeline, VanillaPipelineConfig
+from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch.cuda.amp.grad_scaler import GradScaler
 
@@ -33,6 +33,7 @@ from scalar_nerfstudio.engine.process_settings import apply_process_settings
 from scalar_nerfstudio.models.scene_model import BlockInit, DecoderMode, ScalarSceneModel, ScalarSceneModelConfig
 from scalar_nerfstudio.pipeline_text import format_eval_metrics, format_plan_report
 from scalar_nerfstudio.runs import RUN_SCHEMA_VERSION, block_models_dir
+from scalar_nerfstudio.seam.pipeline import PipelineBase
 from scalar_nerfstudio.viewer import BlockOverlay, CoarseFirstRender, FinishedRunPanel, fusion_dropdown
 
 
@@ -165,7 +166,7 @@ class ScalarPipelineConfig(VanillaPipelineConfig):
         return phases
 
 
-class ScalarPipeline(VanillaPipeline):
+class ScalarPipeline(PipelineBase):
     """Datamanager per phase -> :class:`ScalarSceneModel` (global model, block models, fusion)."""
 
     config: ScalarPipelineConfig
@@ -181,13 +182,9 @@ class ScalarPipeline(VanillaPipeline):
         local_rank: int = 0,
         grad_scaler: Optional[GradScaler] = None,
     ) -> None:
-        Pipeline.__init__(self)
+        super().__init__(config, test_mode=test_mode, world_size=world_size, local_rank=local_rank)
         if world_size > 1:
             raise NotImplementedError("scalar-nerf trains on one device; use scalar-nerf-block to spread blocks over machines")
-        self.config = config
-        self.test_mode = test_mode
-        self.world_size = world_size
-        self.local_rank = local_rank
         self.datamanager: DataManager = config.datamanager.setup(device=device, test_mode=test_mode, world_size=1, local_rank=0)
         self.datamanager.to(device)
         parsed = self.datamanager.train_dataparser_outputs
@@ -197,7 +194,7 @@ class ScalarPipeline(VanillaPipeline):
         # A new run (one that has started reads its radius, or none, back from its config.yml).
         if config.run_plan is None and config.scene_radius_from_depth and config.model.scene_radius is None:
             config.model.scene_radius = scene_radius_logged(parsed)
-        self._model = config.model.setup(
+        model = config.model.setup(
             scene_box=self.datamanager.train_dataset.scene_box,
             num_train_data=len(self.datamanager.train_dataset),
             metadata=self.datamanager.train_dataset.metadata,
@@ -210,6 +207,7 @@ class ScalarPipeline(VanillaPipeline):
             block_init=config.block_init,
             block_observation=self._block_observation(parsed),
         )
+        self.set_model(model)
         self.model.to(device)
         if config.run_plan is not None:  # a run that has started: its block_models/ are beside its plan
             self.attach_run_dir(Path(config.run_plan).parent)

@@ -50,6 +50,7 @@ from scalar_nerfstudio.models.block_store import BlockStore
 from scalar_nerfstudio.models.fused_render import FusedRenderer, FusionSettings
 from scalar_nerfstudio.models.normals import NormalsOutput
 from scalar_nerfstudio.models.scalar_model import ScalarModel, ScalarModelConfig, near_far_collider
+from scalar_nerfstudio.seam import PIPELINE_MODEL_KEY_PREFIX
 
 __all__ = [
     "BLOCK_INITS",
@@ -192,8 +193,8 @@ class ScalarSceneModel(NormalsOutput, Model):
                                block_init=self.block_init, scene_box=self.scene_box, num_images=self._num_block_images[index])
 
     # -------------------------------------------------------------- checkpoint layout
-    #: Where the pipeline keeps this model in its state dict (nerfstudio's ``Pipeline._model``).
-    PIPELINE_KEY_PREFIX = "_model."
+    #: Where the pipeline keeps this model in its state dict (nerfstudio's ``_model.``: ``scalar_nerfstudio.seam``).
+    PIPELINE_KEY_PREFIX = PIPELINE_MODEL_KEY_PREFIX
 
     @classmethod
     def global_state(cls, pipeline_state: Dict[str, Tensor]) -> Dict[str, Tensor]:
