@@ -132,8 +132,9 @@ def test_trainer_checkpoint_is_loaded_by_its_private_load_checkpoint(tmp_path: P
 
     checkpoints = tmp_path / "checkpoints"
     checkpoints.mkdir()
-    torch.save({"step": 4, "pipeline": {"w": torch.ones(1)}, "optimizers": {}, "scalers": {}}, checkpoints / "step-000000004.ckpt")
-    (checkpoints / "step-000000009.ckpt.partial").write_text("not a checkpoint")  # nerfstudio's own choice would pick it
+    state = {"step": 4, "pipeline": {"w": torch.ones(1)}, "optimizers": {}, "scalers": {}}
+    torch.save(state, checkpoints / "step-000000004.ckpt")
+    (checkpoints / "step-000000009.ckpt.partial").write_text("not a checkpoint")  # nerfstudio's own choice: 9
     config = _trainer_config(tmp_path)
     config.load_dir = checkpoints
     trainer = Resuming(config, device_type="cpu", mixed_precision=False)
@@ -200,11 +201,17 @@ def test_viewer_attributes_read_by_the_controls() -> None:
     import nerfstudio.viewer.viewer as viewer_module
     from nerfstudio.viewer.viewer import Viewer
 
-    from scalar_nerfstudio.seam.viewer import hide_training_buttons, show_step, viewer_model_device, viewer_trains
-    from scalar_nerfstudio.seam.viewer import viser_scale_ratio
+    from scalar_nerfstudio.seam.viewer import (
+        hide_training_buttons,
+        show_step,
+        viewer_model_device,
+        viewer_trains,
+        viser_scale_ratio,
+    )
 
     init = _source(Viewer.__init__)
-    for attribute in ("self.trainer = trainer", "self.pause_train = ", "self.resume_train = ", "self.render_statemachines"):
+    for attribute in ("self.trainer = trainer", "self.pause_train = ", "self.resume_train = ",
+                      "self.render_statemachines"):
         assert attribute in init, attribute
     source = _source(viewer_module)  # (some of its methods are decorated: their own source is hidden)
     for code in ("self.step = step", "def update_step(self, step)", "def get_model(self)"):  # update_scene, ...
@@ -212,8 +219,9 @@ def test_viewer_attributes_read_by_the_controls() -> None:
     assert viser_scale_ratio() == float(viewer_module.VISER_NERFSTUDIO_SCALE_RATIO) > 0
 
     steps: List[int] = []
-    viewer = SimpleNamespace(trainer=None, pause_train=SimpleNamespace(visible=True), resume_train=SimpleNamespace(visible=True),
-                             step=7, update_step=steps.append, get_model=lambda: SimpleNamespace(device=torch.device("cpu")))
+    viewer = SimpleNamespace(trainer=None, pause_train=SimpleNamespace(visible=True),
+                             resume_train=SimpleNamespace(visible=True), step=7, update_step=steps.append,
+                             get_model=lambda: SimpleNamespace(device=torch.device("cpu")))
     assert not viewer_trains(viewer) and viewer_model_device(viewer) == "cpu"
     hide_training_buttons(viewer)
     show_step(viewer)
@@ -272,7 +280,8 @@ def test_render_commands_load_runs_with_their_modules_eval_setup(monkeypatch: py
     from scalar_nerfstudio.seam.render_command import after_each_load
 
     assert ns_render.eval_setup is eval_setup
-    for command in (ns_render.RenderCameraPath, ns_render.RenderInterpolated, ns_render.SpiralRender, ns_render.DatasetRender):
+    for command in (ns_render.RenderCameraPath, ns_render.RenderInterpolated, ns_render.SpiralRender,
+                    ns_render.DatasetRender):
         assert "eval_setup(" in _source(command.main), command.__name__
 
     def fake_eval_setup(path: Path, **kwargs: Any) -> tuple:
