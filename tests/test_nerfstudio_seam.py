@@ -172,6 +172,31 @@ def test_pipeline_base_sets_what_vanilla_pipelines_methods_use() -> None:
     assert float(model.weight.detach().abs().sum()) == 0.0
 
 
+# ---------------------------------------------------------------------------------- seam/data.py
+def test_dataset_keeps_its_parsed_outputs_and_loaders_read_the_datamanagers_config() -> None:
+    """``dataparser_outputs``: ``InputDataset`` keeps its outputs as the private ``_dataparser_outputs``;
+    ``loader_options``: ``VanillaDataManager.setup_train`` / ``setup_eval`` read their image sampling
+    options from ``self.config`` as they build their loaders."""
+    from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManager, VanillaDataManagerConfig
+    from nerfstudio.data.datasets.base_dataset import InputDataset
+
+    from scalar_nerfstudio.seam.data import dataparser_outputs, loader_options
+
+    assert "self._dataparser_outputs = dataparser_outputs" in _source(InputDataset.__init__)
+    for split in ("train", "eval"):
+        setup = _source(getattr(VanillaDataManager, f"setup_{split}"))
+        for option in ("num_images_to_sample_from", "num_times_to_repeat_images"):
+            assert f"self.config.{split}_{option}" in setup, (split, option)
+    dataset = InputDataset.__new__(InputDataset)
+    dataset._dataparser_outputs = outputs = SimpleNamespace()  # type: ignore[assignment]
+    assert dataparser_outputs(dataset) is outputs
+    config = VanillaDataManagerConfig()
+    datamanager = SimpleNamespace(config=config)
+    with loader_options(datamanager, train_num_images_to_sample_from=3):
+        assert datamanager.config.train_num_images_to_sample_from == 3 and datamanager.config is not config
+    assert datamanager.config is config and config.train_num_images_to_sample_from == -1
+
+
 # -------------------------------------------------------------------------------- seam/viewer.py
 def test_viewer_control_is_set_up_by_the_viewer() -> None:
     """``ViewerHook``: the viewer calls ``ViewerControl._setup(viewer)`` on every control of the pipeline,

@@ -17,6 +17,10 @@ import the others (nerfstudio's viewer and ``ns-render`` take seconds to import)
   ``VanillaPipeline`` without its constructor body (a pipeline that builds its datamanager and model its
   own way), and puts the model where nerfstudio keeps it (the private ``_model``:
   :data:`PIPELINE_MODEL_KEY_PREFIX` in checkpoints).
+* :mod:`.data` (``nerfstudio.data.datasets.base_dataset``, ``nerfstudio.data.datamanagers.base_datamanager``):
+  :func:`~.data.dataparser_outputs` reads a dataset's private ``_dataparser_outputs``;
+  :func:`~.data.loader_options` gives ``VanillaDataManager.setup_train`` / ``setup_eval`` other image
+  sampling options than its config's, for the loader they build.
 * :mod:`.viewer` (``nerfstudio.viewer.viewer_elements``, ``nerfstudio.viewer.viewer``):
   :class:`~.viewer.ViewerHook` is a ``ViewerControl`` told when the viewer has set it up (the
   "internal use only" ``ViewerControl._setup``), with the viewer's undocumented attributes (its
