@@ -17,14 +17,14 @@ import torch
 import tyro
 from nerfstudio.data.datamanagers.base_datamanager import DataManager
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
-from nerfstudio.pipelines.base_pipeline import Pipeline, VanillaPipeline, VanillaPipelineConfig
+from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch.cuda.amp.grad_scaler import GradScaler
 
 from scalar_nerfstudio.blocks.capacity import BlockCapacity, LayoutScale, auto_num_blocks, layout_scale
 from scalar_nerfstudio.blocks.length import LengthSettings, TrainingLength, parse_duration, plan_length
 from scalar_nerfstudio.blocks.observation import block_observation
-from scalar_nerfstudio.blocks.plan import BlockPlan, PlanSettings, load_plan, plan_blocks
+from scalar_nerfstudio.blocks.plan import BlockPlan, PlanSettings, load_plan, plan_blocks, recorded_scene_bound
 from scalar_nerfstudio.blocks.split import BlockSplit, BlockSplitError, load_blocks_json
 from scalar_nerfstudio.data.datamanager import ScalarDataManagerConfig, camera_centres, camera_layout, training_image_names
 from scalar_nerfstudio.data.depth import scene_radius_logged
@@ -34,6 +34,7 @@ from scalar_nerfstudio.engine.process_settings import apply_process_settings
 from scalar_nerfstudio.models.scene_model import BlockInit, DecoderMode, ScalarSceneModel, ScalarSceneModelConfig
 from scalar_nerfstudio.pipeline_text import format_eval_metrics, format_plan_report
 from scalar_nerfstudio.runs import RUN_SCHEMA_VERSION, block_models_dir
+from scalar_nerfstudio.seam.pipeline import PipelineBase
 from scalar_nerfstudio.viewer import BlockOverlay, CoarseFirstRender, FinishedRunPanel, fusion_dropdown
 
 
@@ -108,7 +109,7 @@ class ScalarPipelineConfig(VanillaPipelineConfig):
     (0 to 1), then restarts them at the block templates' rates and decays; 0: one decay over the run."""
     scene_radius_from_depth: bool = True
     """A new run on a scene with depth images, without --pipeline.model.scene-radius, ends its rays at
-    a sphere fitted to them (radius recorded in config.yml); False: rays run to the far plane."""
+    a sphere fitted to them (radius recorded in the run's blocks.json); False: rays run to the far plane."""
     train_blocks: bool = True
     """False: train the global phase only (blocks can then be trained with scalar-nerf-block)."""
     only_block: Optional[int] = None
@@ -167,7 +168,7 @@ class ScalarPipelineConfig(VanillaPipelineConfig):
         return phases
 
 
-class ScalarPipeline(VanillaPipeline):
+class ScalarPipeline(PipelineBase):
     """Datamanager per phase -> :class:`ScalarSceneModel` (global model, block models, fusion)."""
 
     config: ScalarPipelineConfig
@@ -183,23 +184,19 @@ class ScalarPipeline(VanillaPipeline):
         local_rank: int = 0,
         grad_scaler: Optional[GradScaler] = None,
     ) -> None:
-        Pipeline.__init__(self)
+        super().__init__(config, test_mode=test_mode, world_size=world_size, local_rank=local_rank)
         if world_size > 1:
             raise NotImplementedError("scalar-nerf trains on one device; use scalar-nerf-block to spread blocks over machines")
-        self.config = config
-        self.test_mode = test_mode
-        self.world_size = world_size
-        self.local_rank = local_rank
         self.datamanager: DataManager = config.datamanager.setup(device=device, test_mode=test_mode, world_size=1, local_rank=0)
         self.datamanager.to(device)
         parsed = self.datamanager.train_dataparser_outputs
         self.plan: BlockPlan = self._block_plan(parsed)
         block_ids = self.plan.held_blocks
         self.phases: List[Phase] = self._phases()
-        # A new run (one that has started reads its radius, or none, back from its config.yml).
-        if config.run_plan is None and config.scene_radius_from_depth and config.model.scene_radius is None:
-            config.model.scene_radius = scene_radius_logged(parsed)
-        self._model = config.model.setup(
+        self.scene_radius: Optional[float] = self._scene_radius(parsed)
+        """Rays end where they leave the sphere of this radius around the origin (None: unbounded)."""
+        self.plan = self.plan.bounded(self.scene_radius)  # recorded in blocks.json
+        model = config.model.setup(
             scene_box=self.datamanager.train_dataset.scene_box,
             num_train_data=len(self.datamanager.train_dataset),
             metadata=self.datamanager.train_dataset.metadata,
@@ -211,7 +208,9 @@ class ScalarPipeline(VanillaPipeline):
             decoder_mode=config.decoder_mode,
             block_init=config.block_init,
             block_observation=self._block_observation(parsed),
+            scene_radius=self.scene_radius,
         )
+        self.set_model(model)
         self.model.to(device)
         if config.run_plan is not None:  # a run that has started: its block_models/ are beside its plan
             self.attach_run_dir(Path(config.run_plan).parent)
@@ -257,6 +256,19 @@ class ScalarPipeline(VanillaPipeline):
         blocks = [plan.split.blocks[k] for k in plan.held_blocks] if not plan.single_model else []
         block_pixels = [sum(pixels[i] for i in block.image_indices) for block in blocks]
         return replace(plan, length=plan_length(self.config.length_settings(), train_pixels=sum(pixels), block_pixels=block_pixels))
+
+    def _scene_radius(self, parsed) -> Optional[float]:
+        """The radius rays end at: ``--pipeline.model.scene-radius`` (or a version-2 config.yml's fitted one); a
+        started run's, in its plan; a ``scalar-nerf-block`` run's global run's; else one fitted to the depth images."""
+        config = self.config
+        if config.model.scene_radius is not None:
+            return config.model.scene_radius
+        if config.run_plan is not None:  # a plan from before bounds were recorded there: none (as before)
+            return None if self.plan.scene_bound is None else self.plan.scene_bound.radius
+        given = recorded_scene_bound(Path(config.blocks_json)) if config.blocks_json is not None else None
+        if given is not None:
+            return given.radius
+        return scene_radius_logged(parsed) if config.scene_radius_from_depth else None
 
     def _phases(self) -> List[Phase]:
         assert self.plan.length is not None

@@ -148,9 +148,13 @@ def report_path(run_dir: Path) -> Path:
 
 
 # ------------------------------------------------------------------ schema versions and migration
-RUN_SCHEMA_VERSION = 2
+RUN_SCHEMA_VERSION = 3
 """Version of the run files this code writes: ``pipeline.scalar_schema_version`` in config.yml and
-``version`` in blocks.json. Version 1: every run written before the versions were recorded."""
+``version`` in blocks.json. Version 1: every run written before the versions were recorded. Version 2:
+config.yml holds the options as given plus the values the run derived (the scene radius fitted to the
+depth images in ``model.scene_radius``, the planned steps in ``max_num_iterations``, the device). Version 3:
+config.yml holds the options as given; the run's derived values are in its blocks.json (the scene radius
+as ``plan.scene_radius``) or are derived again (the steps from the plan's length, the device)."""
 SCHEMA_FIELD = "scalar_schema_version"
 """The pipeline config's field that holds the version of config.yml."""
 
@@ -186,7 +190,10 @@ def upgrade_run_config(state: Dict[str, Any]) -> Dict[str, Any]:
 
     Version 1 (no ``scalar_schema_version``): every option it lacks is set to the value it was
     trained with (``_V1_*``; options it has are kept), so it loads and resumes as it was trained.
-    A config whose pipeline is not scalar-nerf's is returned unchanged.
+    Version 2: kept as it is: its ``model.scene_radius`` may be the radius the run fitted to its depth
+    images (its blocks.json records none), which the model then reads as a given radius, so the run
+    loads with the bound it was trained with; its ``max_num_iterations`` may be the steps it planned,
+    which its phases also give. A config whose pipeline is not scalar-nerf's is returned unchanged.
 
     Raises:
         RunSchemaError: the config was written by a newer version.
@@ -213,8 +220,9 @@ def upgrade_run_config(state: Dict[str, Any]) -> Dict[str, Any]:
 
 
 def upgrade_blocks_json(content: Mapping[str, Any], path: Path) -> Dict[str, Any]:
-    """A blocks.json's ``content`` brought to :data:`RUN_SCHEMA_VERSION` (version 1 has the same
-    layout: the split, and the plan when a run wrote it, so only its version changes).
+    """A blocks.json's ``content`` brought to :data:`RUN_SCHEMA_VERSION` (versions 1 and 2 have the same
+    layout: the split, and the plan when a run wrote it, so only its version changes; their plan has no
+    ``scene_radius``: such a run's config.yml gives its radius, if it has one).
 
     Raises:
         RunSchemaError: the file was written by a newer version (the message names ``path``).

@@ -12,8 +12,8 @@
 * :class:`FinishedRunPanel`: on ``ns-viewer`` of a trained run, the panel shows the run's step and no
   "Pause Training" button (nerfstudio's viewer shows "Pause Training" and "Step: 0" there).
 
-All are found by nerfstudio's viewer because they are attributes of the pipeline (``ViewerControl``
-objects are handed the viewer object by ``ViewerControl._setup``).
+All are found by nerfstudio's viewer because they are attributes of the pipeline (the controls are
+handed the viewer object: :class:`scalar_nerfstudio.seam.viewer.ViewerHook`).
 """
 
 from __future__ import annotations
@@ -21,11 +21,12 @@ from __future__ import annotations
 from typing import Any, Callable, Dict, List, Optional, Sequence
 
 import numpy as np
-from nerfstudio.viewer.viewer_elements import ViewerControl, ViewerDropdown
+from nerfstudio.viewer.viewer_elements import ViewerDropdown
 
 from scalar_nerfstudio.blocks.palette import block_colour
 from scalar_nerfstudio.blocks.split import BlockSplit
 from scalar_nerfstudio.fusion import FUSION_MODES
+from scalar_nerfstudio.seam.viewer import ViewerHook, hide_training_buttons, show_step, viewer_trains, viser_scale_ratio
 
 #: Scene node under which the overlay is drawn.
 OVERLAY_NODE = "/scalar_blocks"
@@ -56,43 +57,38 @@ def box_edges(aabb_min: Sequence[float], aabb_max: Sequence[float]) -> np.ndarra
     return np.stack([corners[[i, j]] for i, j in edges])
 
 
-class CoarseFirstRender(ViewerControl):
+class CoarseFirstRender(ViewerHook):
     """Makes the viewer render a still view of a CPU model coarse first, then at full size (GPU models
     keep nerfstudio's renders); see ``viewer_render.py``."""
 
-    def _setup(self, viewer) -> None:  # called by nerfstudio's Viewer once the server runs
-        super()._setup(viewer)
+    def viewer_ready(self, viewer: Any) -> None:
         from scalar_nerfstudio.viewer_render import install_progressive_render  # imports nerfstudio's viewer (slow)
 
         install_progressive_render(viewer)
 
 
-class FinishedRunPanel(ViewerControl):
+class FinishedRunPanel(ViewerHook):
     """On a viewer without a trainer (``ns-viewer`` of a trained run) hides nerfstudio's "Pause Training" and
     "Resume Training" buttons (there is no training to pause) and shows the run's step in the stats line.
 
     nerfstudio's ``ns-viewer`` builds its viewer with no trainer, so the buttons show "Pause Training", and
     it passes the checkpoint's step to ``Viewer.update_scene``, which stores it in ``viewer.step`` but
     writes "Step:" only while training. The step is written when a browser connects (``update_scene``
-    runs after the viewer's controls are set up). Uses the viewer's public attributes only.
+    runs after the viewer's controls are set up).
     """
 
-    def _setup(self, viewer) -> None:  # called by nerfstudio's Viewer once the server runs
-        super()._setup(viewer)
-        if getattr(viewer, "trainer", None) is not None:
+    def viewer_ready(self, viewer: Any) -> None:
+        if viewer_trains(viewer):
             return  # ns-train: nerfstudio's buttons pause and resume the training
-        for name in ("pause_train", "resume_train"):
-            button = getattr(viewer, name, None)
-            if button is not None:
-                button.visible = False
+        hide_training_buttons(viewer)
         self.viser_server.on_client_connect(lambda client: self.show_step())
 
     def show_step(self) -> None:
-        """Write the run's step (``viewer.step``) into the viewer's stats line."""
-        self.viewer.update_step(int(self.viewer.step))
+        """Write the run's step (the viewer's) into the viewer's stats line."""
+        show_step(self.viewer)
 
 
-class BlockOverlay(ViewerControl):
+class BlockOverlay(ViewerHook):
     """Draws the blocks' scaled AABBs and the training cameras coloured by block into the viewer.
 
     The scene nodes viser returns are kept, so the overlay can be hidden (:meth:`set_visible`), drawn
@@ -116,8 +112,7 @@ class BlockOverlay(ViewerControl):
         self.camera_handle: Optional[Any] = None
         """The scene node of the camera points."""
 
-    def _setup(self, viewer) -> None:  # called by nerfstudio's Viewer once the server runs
-        super()._setup(viewer)
+    def viewer_ready(self, viewer: Any) -> None:
         self.draw()
 
     @property
@@ -135,8 +130,7 @@ class BlockOverlay(ViewerControl):
 
     def draw(self) -> None:
         """(Re)draw the overlay into the viewer's scene, in the current style and visibility."""
-        from nerfstudio.viewer.viewer import VISER_NERFSTUDIO_SCALE_RATIO  # loaded with the viewer that calls _setup
-
+        scale = viser_scale_ratio()
         self.remove()
         scene = self.viser_server.scene
         for block in self.split.blocks:
@@ -144,14 +138,14 @@ class BlockOverlay(ViewerControl):
             self.edge_handles[block.index] = [
                 scene.add_spline_catmull_rom(
                     f"{OVERLAY_NODE}/block_{block.index}/edge_{e}",
-                    positions=(tuple(start * VISER_NERFSTUDIO_SCALE_RATIO), tuple(end * VISER_NERFSTUDIO_SCALE_RATIO)),
+                    positions=(tuple(start * scale), tuple(end * scale)),
                     color=colour, line_width=self.line_width, visible=self.visible,
                 )
                 for e, (start, end) in enumerate(box_edges(block.aabb_min, block.aabb_max))
             ]
         colours = np.stack([block_colour(int(o)) for o in self.camera_owners()]).astype(np.float32)
         self.camera_handle = scene.add_point_cloud(
-            f"{OVERLAY_NODE}/cameras", points=self.camera_centres * VISER_NERFSTUDIO_SCALE_RATIO, colors=colours,
+            f"{OVERLAY_NODE}/cameras", points=self.camera_centres * scale, colors=colours,
             point_size=self.point_size, point_shape="circle", visible=self.visible,
         )
 

@@ -13,11 +13,12 @@ moving are sized by nerfstudio as before. GPU models keep nerfstudio's own state
 
 The hook: nerfstudio's ``Viewer.handle_new_client`` builds one ``RenderStateMachine`` per browser
 client, puts it into ``viewer.render_statemachines`` and starts it from there.
-:func:`install_progressive_render` replaces that (instance) dict by :class:`ProgressiveMachines`,
-whose ``__setitem__`` puts a :class:`ProgressiveRenderStateMachine` in place of the machine
-nerfstudio built, before it is started. Nothing in nerfstudio's modules is patched; only the one
-viewer object is changed. It is called from ``viewer.CoarseFirstRender._setup``, a ``ViewerControl`` (the viewer's documented way
-to hand a plugin its viewer object), so it works for ``ns-train`` and ``ns-viewer`` alike.
+:func:`install_progressive_render` replaces that (instance) dict by :class:`ProgressiveMachines`, which
+puts a :class:`ProgressiveRenderStateMachine` in place of the machine nerfstudio built, before it is
+started. Nothing in nerfstudio's modules is patched; only the one viewer object is changed. It is
+called from ``viewer.CoarseFirstRender``, a ``ViewerControl`` (the viewer hands it the viewer object),
+so it works for ``ns-train`` and ``ns-viewer`` alike. What of nerfstudio's render state machine and
+viewer this relies on is in :mod:`scalar_nerfstudio.seam.render_state` and :mod:`scalar_nerfstudio.seam.viewer`.
 """
 
 from __future__ import annotations
@@ -28,8 +29,10 @@ import time
 from collections import deque
 from typing import Any, Deque, Dict, Optional, Tuple
 
-from nerfstudio.viewer.render_state_machine import RenderStateMachine
 from nerfstudio.viewer.utils import CameraState
+
+from scalar_nerfstudio.seam.render_state import RenderStateMachineBase, SwappingMachines
+from scalar_nerfstudio.seam.viewer import render_state_machines, set_render_state_machines, viewer_model_device
 
 #: Seconds the coarse pass should take (measured render time per pixel x its pixels).
 COARSE_BUDGET_S = 1.0
@@ -89,7 +92,7 @@ def coarse_resolution(
     return height, max(1, int(height * aspect))
 
 
-class ProgressiveRenderStateMachine(RenderStateMachine):
+class ProgressiveRenderStateMachine(RenderStateMachineBase):
     """nerfstudio's render state machine, plus a coarse first pass before a full-resolution CPU render.
 
     The coarse pass is made when all hold: the state is ``high`` (a still camera at "Max res"), the
@@ -115,13 +118,13 @@ class ProgressiveRenderStateMachine(RenderStateMachine):
         self._last_resolution: Optional[Tuple[int, int]] = None
         self._rendered_resolution: Optional[Tuple[int, int]] = None
 
-    # ------------------------------------------------------------------ nerfstudio's hooks, extended
-    def _calculate_image_res(self, aspect_ratio: float) -> Tuple[int, int]:
-        resolution = self._forced_resolution or super()._calculate_image_res(aspect_ratio)
+    # ------------------------------------------------------------------ nerfstudio's steps, extended
+    def image_resolution(self, aspect_ratio: float) -> Tuple[int, int]:
+        resolution = self._forced_resolution or super().image_resolution(aspect_ratio)
         self._last_resolution = resolution
         return resolution
 
-    def _render_img(self, camera_state: CameraState):
+    def render_image(self, camera_state: CameraState) -> Dict[str, Any]:
         coarse = self.coarse_pass_resolution(camera_state.aspect)
         if coarse is not None:
             self._forced_resolution = coarse
@@ -131,24 +134,23 @@ class ProgressiveRenderStateMachine(RenderStateMachine):
                 self._forced_resolution = None
             # A move or rerender during this pass raised out of it (nerfstudio's interrupt); one that
             # comes while it is sent interrupts the full pass at its first line.
-            self._send_output_to_viewer(outputs, static_render=True)
+            self.show_output(outputs, static_render=True)
             self.coarse_passes += 1
         return self._timed_render(camera_state)
 
-    def _send_output_to_viewer(self, outputs: Dict[str, Any], static_render: bool = True) -> None:
-        super()._send_output_to_viewer(outputs, static_render=static_render)
+    def show_output(self, outputs: Dict[str, Any], *, static_render: bool = True) -> None:
+        super().show_output(outputs, static_render=static_render)
         self.shown_resolution = self._rendered_resolution
 
     # --------------------------------------------------------------------------------- the additions
     def on_cpu(self) -> bool:
-        device = getattr(self.viewer.get_model(), "device", None)
-        return device is not None and str(device).split(":")[0] == "cpu"
+        return viewer_model_device(self.viewer) == "cpu"
 
     def coarse_pass_resolution(self, aspect: float) -> Optional[Tuple[int, int]]:
         """(height, width) of the coarse pass the next render makes first; None: no coarse pass."""
-        if self.state != "high" or not self.on_cpu():
+        if self.render_state != "high" or not self.on_cpu():
             return None
-        full_height, full_width = RenderStateMachine._calculate_image_res(self, aspect)
+        full_height, full_width = self.nerfstudio_image_resolution(aspect)
         height, width = coarse_resolution(
             aspect, self.speed.seconds_per_pixel, budget_s=self.coarse_budget_s,
             min_height=self.coarse_min_height, max_height=self.coarse_max_height, unmeasured_height=self.unmeasured_height,
@@ -164,9 +166,9 @@ class ProgressiveRenderStateMachine(RenderStateMachine):
             return None  # the full render is quick anyway
         return height, width
 
-    def _timed_render(self, camera_state: CameraState):
+    def _timed_render(self, camera_state: CameraState) -> Dict[str, Any]:
         start = time.perf_counter()
-        outputs = super()._render_img(camera_state)
+        outputs = super().render_image(camera_state)
         seconds = time.perf_counter() - start
         self._rendered_resolution = self._last_resolution
         if self._last_resolution is not None:
@@ -174,30 +176,17 @@ class ProgressiveRenderStateMachine(RenderStateMachine):
         return outputs
 
 
-class ProgressiveMachines(dict):
+class ProgressiveMachines(SwappingMachines):
     """``viewer.render_statemachines`` that turns each nerfstudio ``RenderStateMachine`` put into it
-    into a :class:`ProgressiveRenderStateMachine` (one :class:`RenderSpeed` for the whole viewer).
-
-    nerfstudio's ``handle_new_client`` does ``machines[id] = RenderStateMachine(...)`` and then
-    ``machines[id].start()``: the machine it built is never started, ours is. A machine that is
-    already running (a browser connected before the viewer was set up) is stopped and ours started.
-    """
+    into a :class:`ProgressiveRenderStateMachine` (one :class:`RenderSpeed` for the whole viewer;
+    how the machines are swapped: :class:`~scalar_nerfstudio.seam.render_state.SwappingMachines`)."""
 
     def __init__(self, speed: Optional[RenderSpeed] = None) -> None:
         super().__init__()
         self.speed = speed if speed is not None else RenderSpeed()
 
-    def __setitem__(self, client_id: int, machine: RenderStateMachine) -> None:
-        if type(machine) is RenderStateMachine:
-            running = machine.ident is not None
-            replacement = ProgressiveRenderStateMachine(machine.viewer, machine.viser_scale_ratio, machine.client, speed=self.speed)
-            if running:
-                machine.running = False
-                machine.interrupt_render_flag = True
-                replacement.state = machine.state
-                replacement.start()
-            machine = replacement
-        super().__setitem__(client_id, machine)
+    def build(self, viewer: Any, viser_scale_ratio: float, client: Any) -> ProgressiveRenderStateMachine:
+        return ProgressiveRenderStateMachine(viewer, viser_scale_ratio, client, speed=self.speed)
 
 
 def install_progressive_render(viewer: Any) -> bool:
@@ -206,16 +195,15 @@ def install_progressive_render(viewer: Any) -> bool:
     Idempotent; does nothing (False) for a model that is not on the CPU or a viewer without
     ``render_statemachines`` (another nerfstudio version): there nerfstudio's behaviour is kept.
     """
-    machines = getattr(viewer, "render_statemachines", None)
+    machines = render_state_machines(viewer)
     if isinstance(machines, ProgressiveMachines):
         return True
     if not isinstance(machines, dict):
         return False
-    device = getattr(viewer.get_model(), "device", None)
-    if device is None or str(device).split(":")[0] != "cpu":
+    if viewer_model_device(viewer) != "cpu":
         return False
     progressive = ProgressiveMachines()
-    viewer.render_statemachines = progressive
+    set_render_state_machines(viewer, progressive)
     for client_id, machine in list(machines.items()):
         progressive[client_id] = machine
     return True

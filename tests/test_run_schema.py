@@ -42,7 +42,7 @@ def test_an_old_run_loads_with_the_behaviour_it_was_trained_with() -> None:
         assert pipeline.block_init == "fresh" and pipeline.plan_settings().global_max_resolution is None
         assert pipeline.lr_schedule == "per-phase" and pipeline.one_model_restart == 0.0
         assert pipeline.scene_radius_from_depth is False and pipeline.model.scene_radius is None
-        assert near_far_collider(pipeline.model).scene_radius is None
+        assert near_far_collider(pipeline.model, scene_radius=pipeline.model.scene_radius).scene_radius is None
         assert pipeline.run_plan is None and pipeline.num_blocks == 2  # what it has is kept
         optimizers = config.optimizers
         assert optimizers["block_encoder"]["optimizer"].lr == optimizers["encoder"]["optimizer"].lr == 1e-2

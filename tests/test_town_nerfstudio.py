@@ -218,11 +218,13 @@ def test_check_scene_accepts_the_town(tiny_scene: Path) -> None:
 def test_a_new_run_is_bounded_by_the_scenes_depth_and_records_it(scene_name: str, from_depth: bool, tiny_scene: Path,
                                                                    scene: Path, tmp_path: Path) -> None:
     """ns-train on a scene with depth images bounds every model (global and blocks) by them and
-    writes the radius into the run's config.yml, so that every later load renders as trained; a
-    scene without depth, or --pipeline.scene-radius-from-depth False, leaves rays unbounded."""
+    records the radius in the run's blocks.json (config.yml keeps the option as given), so that every
+    later load renders as trained; a scene without depth, or --pipeline.scene-radius-from-depth False,
+    leaves rays unbounded."""
     import yaml
 
     from conftest import tiny_trainer
+    from scalar_nerfstudio.blocks.plan import SceneBound, load_plan
     from scalar_nerfstudio.data.depth import scene_radius_from_depth
 
     data = tiny_scene if scene_name == "town" else scene
@@ -231,7 +233,62 @@ def test_a_new_run_is_bounded_by_the_scenes_depth_and_records_it(scene_name: str
     assert (expected is not None) == (scene_name == "town" and from_depth)
     model = trainer.pipeline.model
     assert len(model.blocks) == 2
+    assert trainer.pipeline.scene_radius == expected
     for collider in [model.collider] + [block.collider for block in model.blocks.values()]:
         assert collider.scene_radius == expected
     saved = yaml.load((trainer.base_dir / "config.yml").read_text(), Loader=yaml.Loader)
-    assert saved.pipeline.model.scene_radius == expected and saved.pipeline.run_plan is not None
+    assert saved.pipeline.model.scene_radius is None and saved.pipeline.run_plan is not None
+    assert load_plan(saved.pipeline.run_plan).scene_bound == SceneBound(expected)
+
+
+def _differences(saved: object, asked: object, path: str = "config") -> list:
+    """The dotted paths at which two configs (dataclasses, dicts, values) differ."""
+    import dataclasses
+
+    if dataclasses.is_dataclass(saved) and not isinstance(saved, type) and type(saved) is type(asked):
+        return [d for f in dataclasses.fields(saved)
+                for d in _differences(getattr(saved, f.name), getattr(asked, f.name), f"{path}.{f.name}")]
+    if isinstance(saved, dict) and isinstance(asked, dict) and saved.keys() == asked.keys():
+        return [d for key in saved for d in _differences(saved[key], asked[key], f"{path}[{key!r}]")]
+    return [] if saved == asked else [f"{path}: {saved!r} in config.yml, {asked!r} asked"]
+
+
+def test_a_trained_runs_config_is_as_asked_and_its_loads_keep_the_derived_values(tiny_scene: Path,
+                                                                                  tmp_path: Path) -> None:
+    """The config.yml of a short run (global phase and 2 blocks) is the config it was given, nothing derived
+    written in (steps, device, mixed precision, scene radius, collider); ns-eval's loading of the run
+    (nerfstudio's eval_setup) still bounds every model by the radius the run fitted to its depth images."""
+    import copy
+
+    from nerfstudio.utils.eval_utils import eval_setup
+
+    from conftest import tiny_trainer
+    from scalar_nerfstudio.runs import load_run_config
+
+    asked: list = []
+
+    def configure(config) -> None:
+        config.pipeline.model.render_occupancy_resolution = 16  # a cheap render grid at each phase's end
+        asked.append(copy.deepcopy(config))
+
+    trainer = tiny_trainer(tiny_scene, tmp_path, num_blocks=2, global_steps=6, block_steps=3, configure=configure)
+    trainer.train()
+    radius = trainer.pipeline.scene_radius
+    assert radius is not None and trainer.total_steps == 12
+    run = trainer.base_dir
+    saved = load_run_config(run)
+    assert saved.pipeline.run_plan == (run / "blocks.json").resolve()  # the link to what the run derived
+    (expected,) = asked
+    for name in ("timestamp", "experiment_name"):  # set by nerfstudio's set_timestamp and save_config
+        setattr(expected, name, getattr(saved, name))
+    expected.pipeline.run_plan = saved.pipeline.run_plan
+    # nerfstudio's datamanager writes --data into its dataparser's config, in every method's run
+    expected.pipeline.datamanager.dataparser.data = saved.pipeline.datamanager.dataparser.data
+    assert _differences(saved, expected) == []
+    assert (saved.max_num_iterations, saved.machine.device_type, saved.pipeline.model.scene_radius) == (0, "auto", None)
+
+    _, pipeline, _, step = eval_setup(run / "config.yml", test_mode="test")
+    assert step == 11 and pipeline.scene_radius == radius
+    model = pipeline.model
+    for collider in [model.collider, model.global_model.collider] + [block.collider for block in model.blocks.values()]:
+        assert collider.scene_radius == radius

@@ -113,6 +113,14 @@ def setup_trainer(config):
     return trainer
 
 
+def _planned_steps(trainer: Any) -> int:
+    """The steps ``trainer`` trains in all: a scalar-nerf trainer's (planned from its phases unless
+    ``--max-num-iterations`` is given), nerfstudio's ``max_num_iterations`` for nerfstudio's own trainer."""
+    from scalar_nerfstudio.engine.trainer import ScalarTrainer  # imports nerfstudio's trainer
+
+    return trainer.total_steps if isinstance(trainer, ScalarTrainer) else int(trainer.config.max_num_iterations)
+
+
 def _evaluate(pipeline) -> Dict[str, float]:
     """Mean PSNR / SSIM (/ LPIPS; / depth metrics where the scene has true depth) over the eval
     images, and render ms per image."""
@@ -190,7 +198,7 @@ def run(spec: Dict[str, Any]) -> Dict[str, Any]:
     written after them, so that every variant's run can be loaded (ns-eval, train_vs_heldout.py)."""
     trainer.save_checkpoint = requested_saves.append
     pipeline = trainer.pipeline
-    total = config.max_num_iterations  # the trainer's setup resolved 0 (= every phase) to the phases' total
+    total = _planned_steps(trainer)
     eval_every = int(spec.get("eval_every", 0))
     eval_steps = set(range(eval_every, total + 1, eval_every)) if eval_every > 0 else set()
     time_limit = float(spec.get("time_limit_s", 0.0))
@@ -258,10 +266,12 @@ def run(spec: Dict[str, Any]) -> Dict[str, Any]:
 
 def _run_on_the_clock(spec: Dict[str, Any], trainer, eval_at_s: List[float], partial) -> Dict[str, Any]:
     """:func:`run` for a time budget's run: evaluated at ``eval_at_s`` training seconds and at its end."""
+    from scalar_nerfstudio.seam.trainer import start_step  # imports nerfstudio's trainer
+
     pipeline = trainer.pipeline
     clock = trainer.training_clock
-    start_step = int(getattr(trainer, "_start_step", 0))
-    curve: List[Dict[str, float]] = [p for p in (partial or {}).get("curve", []) if p["step"] <= start_step]
+    first_step = start_step(trainer)
+    curve: List[Dict[str, float]] = [p for p in (partial or {}).get("curve", []) if p["step"] <= first_step]
     phase_end_s: Dict[str, float] = {k: v for k, v in (partial or {}).get("phase_end_s", {}).items()}
     """Training seconds at the end of each finished phase (the blocks' times give the wall-clock of K workers)."""
     pending = [t for t in eval_at_s if not any(p.get("at_s") == t for p in curve)]
@@ -280,7 +290,7 @@ def _run_on_the_clock(spec: Dict[str, Any], trainer, eval_at_s: List[float], par
         if step + 1 == phase.end_step:
             phase_end_s[phase.name] = clock.elapsed_s()
         due = [t for t in pending if clock.elapsed_s() >= t]
-        if due and step + 1 < trainer._total_steps:
+        if due and step + 1 < trainer.total_steps:
             with clock.paused():
                 curve.append({"step": step + 1, "train_s": clock.elapsed_s(), "at_s": due[-1], **_evaluate(pipeline)})
             for t in due:
@@ -290,9 +300,9 @@ def _run_on_the_clock(spec: Dict[str, Any], trainer, eval_at_s: List[float], par
     time_train_iterations(trainer, after_step)
     trainer.train()
     with clock.paused():
-        curve.append({"step": trainer._total_steps, "train_s": clock.elapsed_s(), "at_s": eval_at_s[-1], **_evaluate(pipeline)})
+        curve.append({"step": trainer.total_steps, "train_s": clock.elapsed_s(), "at_s": eval_at_s[-1], **_evaluate(pipeline)})
     keep()
-    result = _finish(spec, trainer, curve, clock.elapsed_s(), trainer._total_steps - start_step)
+    result = _finish(spec, trainer, curve, clock.elapsed_s(), trainer.total_steps - first_step)
     result["phase_s"] = _phase_seconds(pipeline.phases, phase_end_s)
     atomic_write_text(Path(spec["result"]), json.dumps(result, indent=2))
     return result

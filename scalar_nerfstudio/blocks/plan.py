@@ -2,7 +2,8 @@
 
 A run's shape is its number of blocks K (given, or automatic from the camera layout), the split of
 its training images into blocks (Alg. 1), which blocks its model holds, and each block's table size
-and finest resolution (``blocks/capacity.py``). :func:`plan_blocks` decides all of it from the
+and finest resolution (``blocks/capacity.py``), plus the sphere its rays end at (:class:`SceneBound`,
+fitted to the depth images by the pipeline). :func:`plan_blocks` decides the shape from the
 parsed training cameras; :func:`save_plan` writes it into the run's ``blocks.json`` and
 :func:`load_plan` reads it back, so that every later use of the run (resume, ``ns-eval``,
 ``ns-render`` in any mode, the viewer, ``ns-export``) builds exactly the model that was trained,
@@ -15,7 +16,8 @@ Pure numpy: no torch or nerfstudio import, so it is tested on its own.
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass
+import math
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any, Dict, Optional, Sequence, Tuple
 
@@ -26,7 +28,7 @@ from scalar_nerfstudio.blocks.capacity import BlockCapacity, LayoutScale, auto_n
 from scalar_nerfstudio.blocks.length import LengthError, TrainingLength, length_from_json, length_to_json
 from scalar_nerfstudio.blocks.split import BlockSplit, BlockSplitError, load_blocks_json, split_cameras, split_to_json
 
-__all__ = ["BlockPlan", "PlanSettings", "load_plan", "plan_blocks", "save_plan"]
+__all__ = ["BlockPlan", "PlanSettings", "SceneBound", "load_plan", "plan_blocks", "recorded_scene_bound", "save_plan"]
 
 
 @dataclass(frozen=True)
@@ -55,6 +57,14 @@ class PlanSettings:
 
 
 @dataclass(frozen=True)
+class SceneBound:
+    """The sphere a run's rays end at, as the run decided it when it started (recorded in its blocks.json)."""
+
+    radius: Optional[float]
+    """Radius around the origin (world units of the normalised scene); None: unbounded rays."""
+
+
+@dataclass(frozen=True)
 class BlockPlan:
     """What a run decided about its shape.
 
@@ -67,6 +77,8 @@ class BlockPlan:
         capacities: table size and finest resolution of each held block.
         length: how long the run trains (blocks/length.py); None in a run from before lengths were planned
             (its config.yml gives the steps).
+        scene_bound: the sphere its rays end at (fitted to the depth images, or none); None in a run
+            from before bounds were recorded here (its config.yml gives the radius, if any).
     """
 
     split: BlockSplit
@@ -76,6 +88,11 @@ class BlockPlan:
     held_blocks: Tuple[int, ...]
     capacities: Dict[int, BlockCapacity]
     length: Optional[TrainingLength] = None
+    scene_bound: Optional[SceneBound] = None
+
+    def bounded(self, radius: Optional[float]) -> "BlockPlan":
+        """This plan, its rays ending at the sphere of ``radius`` (None: unbounded)."""
+        return replace(self, scene_bound=SceneBound(radius))
 
     @property
     def single_model(self) -> bool:
@@ -160,6 +177,8 @@ def save_plan(plan: BlockPlan, path: Path) -> None:
     }
     if plan.length is not None:
         content["plan"]["length"] = length_to_json(plan.length)
+    if plan.scene_bound is not None:
+        content["plan"]["scene_radius"] = plan.scene_bound.radius
     atomic_write_text(Path(path), json.dumps(content, indent=2) + "\n")
 
 
@@ -184,9 +203,39 @@ def load_plan(path: Path) -> BlockPlan:
         auto = saved["auto_num_blocks"]
         auto = None if auto is None else int(auto)
         length = None if saved.get("length") is None else length_from_json(saved["length"])
+        bound = _scene_bound(saved)
     except (KeyError, TypeError, ValueError, LengthError) as error:
         raise BlockSplitError(f"malformed plan in {path}: {error!r}") from None
     if any(not 0 <= k < split.num_blocks for k in held) or set(capacities) != set(held):
         raise BlockSplitError(f"malformed plan in {path}: held blocks {list(held)} and capacities {sorted(capacities)} disagree with {split.num_blocks} blocks")
     return BlockPlan(split=split, image_names=tuple(names), layout=layout, auto_num_blocks=auto, held_blocks=held,
-                     capacities=capacities, length=length)
+                     capacities=capacities, length=length, scene_bound=bound)
+
+
+def _scene_bound(saved: Dict[str, Any]) -> Optional[SceneBound]:
+    """The bound a saved plan records (None: it records none, a plan from before bounds were recorded)."""
+    if "scene_radius" not in saved:
+        return None
+    radius = saved["scene_radius"]
+    if radius is not None and (isinstance(radius, bool) or not isinstance(radius, (int, float))
+                               or not (math.isfinite(radius) and radius > 0)):
+        raise ValueError(f"scene_radius {radius!r}: must be a finite number > 0, or null (unbounded)")
+    return SceneBound(None if radius is None else float(radius))
+
+
+def recorded_scene_bound(path: Path) -> Optional[SceneBound]:
+    """The bound recorded in the blocks.json at ``path`` (another run's, such as the global run of a
+    ``scalar-nerf-block`` run); None: the file records no plan or no bound.
+
+    Raises:
+        BlockSplitError: the file is missing, malformed or newer than this code.
+    """
+    path = Path(path)
+    load_blocks_json(path)  # checks the file and its version
+    saved = json.loads(path.read_text(encoding="utf-8")).get("plan")
+    if not isinstance(saved, dict):
+        return None
+    try:
+        return _scene_bound(saved)
+    except ValueError as error:
+        raise BlockSplitError(f"malformed plan in {path}: {error}") from None

@@ -35,6 +35,7 @@ from torch import Tensor
 
 from scalar_nerfstudio.data.depth import depth_scale, missing_depth_files, ray_depth_image
 from scalar_nerfstudio.data.validation import to_rgb_array
+from scalar_nerfstudio.seam.data import dataparser_outputs, loader_options
 
 
 def subset_dataparser_outputs(outputs: DataparserOutputs, image_indices: Tuple[int, ...]) -> DataparserOutputs:
@@ -128,14 +129,15 @@ class ScalarInputDataset(InputDataset):
         """[H, W, 1] float32 distance from the camera centre to the surface along each pixel's ray, in
         the dataparser's units (what the models' ``depth`` output holds); 0 where the depth image
         says unknown (0: sky, or farther than its format holds). See :func:`ray_depth_image`."""
-        filenames = self._dataparser_outputs.metadata.get("depth_filenames")
+        outputs = dataparser_outputs(self)
+        filenames = outputs.metadata.get("depth_filenames")
         if filenames is None:
             raise ValueError("this scene has no depth images (no depth_file_path in transforms.json)")
-        image = ray_depth_image(self.cameras, image_idx, path=Path(filenames[image_idx]), scale=depth_scale(self._dataparser_outputs))
+        image = ray_depth_image(self.cameras, image_idx, path=Path(filenames[image_idx]), scale=depth_scale(outputs))
         return image.ray_depth[..., None]
 
     def get_numpy_image(self, image_idx: int) -> npt.NDArray[np.uint8]:
-        with Image.open(self._dataparser_outputs.image_filenames[image_idx]) as pil_image:
+        with Image.open(dataparser_outputs(self).image_filenames[image_idx]) as pil_image:
             image = to_rgb_array(pil_image, self.alpha_background)
         if self.scale_factor != 1.0:
             height, width = image.shape[:2]
@@ -252,14 +254,13 @@ class ScalarDataManager(VanillaDataManager[ScalarInputDataset]):
         """nerfstudio's ``{split}_num_images_to_sample_from`` / ``..._num_times_to_repeat_images`` set
         to ``fit`` while its loader is built (unless set explicitly); the config itself is unchanged."""
         config = self.config
-        if fit != -1 and getattr(config, f"{split}_num_images_to_sample_from") == -1:
-            self.config = replace(config, **{
-                f"{split}_num_images_to_sample_from": fit, f"{split}_num_times_to_repeat_images": config.image_resample_every,
-            })
-        try:
+        if fit == -1 or getattr(config, f"{split}_num_images_to_sample_from") != -1:
             yield
-        finally:
-            self.config = config
+            return
+        with loader_options(self, **{
+            f"{split}_num_images_to_sample_from": fit, f"{split}_num_times_to_repeat_images": config.image_resample_every,
+        }):
+            yield
 
     def _with_background(self, dataset: ScalarInputDataset) -> ScalarInputDataset:
         dataset.alpha_background = tuple(float(c) for c in self.config.alpha_background)  # type: ignore[assignment]

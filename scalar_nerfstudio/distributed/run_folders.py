@@ -21,11 +21,19 @@ import re
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Dict, Iterator, List, Optional, Tuple
+from typing import TYPE_CHECKING, Any, Dict, Iterator, List, Optional, Tuple
 
 from scalar_nerfstudio.atomic_io import atomic_write_text
 from scalar_nerfstudio.distributed import TrainBlocksError
-from scalar_nerfstudio.runs import ASSEMBLED_FROM_NAME, CONFIG_NAME, RunError, latest_checkpoint_step, load_run_config, run_config_path
+from scalar_nerfstudio.runs import (
+    ASSEMBLED_FROM_NAME,
+    CONFIG_NAME,
+    RunError,
+    blocks_json_path,
+    latest_checkpoint_step,
+    load_run_config,
+    run_config_path,
+)
 
 if TYPE_CHECKING:
     from scalar_nerfstudio.engine.block_trainer import ScalarBlockTrainerConfig
@@ -90,13 +98,28 @@ def find_block_run(attempt_dir: Path) -> Optional[Path]:
     return runs[-1] if runs else None
 
 
+def _planned_steps(run: Path, config: Any) -> int:
+    """The steps a ``scalar-nerf-block`` run trains: ``--max-num-iterations`` when given, else its block's
+    steps as its blocks.json planned them (a run from before plans recorded them: its config.yml's)."""
+    from scalar_nerfstudio.blocks.plan import load_plan  # numpy and scikit-learn
+    from scalar_nerfstudio.blocks.split import BlockSplitError
+
+    if config.max_num_iterations > 0:
+        return int(config.max_num_iterations)
+    try:
+        length = load_plan(blocks_json_path(run)).length
+    except BlockSplitError:
+        length = None
+    return int(length.block_steps if length is not None else config.pipeline.block_steps)
+
+
 def finished_run(attempt_dir: Path) -> Tuple[Optional[Path], str]:
     """(the attempt's run folder, "") when it holds its final checkpoint, else (None, why not)."""
     run = find_block_run(attempt_dir)
     if run is None:
         return None, "no run folder was written"
     config = load_run_config(run)
-    final = (config.max_num_iterations if config.max_num_iterations > 0 else config.pipeline.block_steps) - 1
+    final = _planned_steps(run, config) - 1
     step = latest_checkpoint_step(run / config.relative_model_dir)
     if step != final:
         return None, f"its newest checkpoint is step {step}, not the final step {final}"

@@ -2,10 +2,11 @@
 
 The method configs say ``--machine.device-type auto`` and ``--mixed-precision True``: train on CUDA
 when the process that trains has a CUDA device, else on the CPU, and use mixed precision only where
-the device has it (CUDA). ``ScalarTrainer`` settles both (:func:`resolve_machine`) just before
-nerfstudio's ``Trainer.__init__`` reads them, so a config made, copied or saved on one machine
-trains on whatever the machine that runs it has. ``--machine.device-type cpu`` (or ``cuda``, ``mps``)
-still forces a device.
+the device has it (CUDA). ``ScalarTrainer`` settles both (:func:`resolve_device_type`) and hands them
+to nerfstudio's ``Trainer.__init__`` (``seam.trainer.TrainerBase``) while its config keeps ``auto``, so a
+config made, copied or saved on one machine trains on whatever the machine that runs it has.
+``--machine.device-type cpu`` (or ``cuda``, ``mps``) still forces a device. :func:`resolve_machine`
+settles a config in place, for nerfstudio's own trainer (the benchmark's nerfacto runs).
 """
 
 from __future__ import annotations

@@ -9,8 +9,7 @@ from typing import Any, Callable, Dict, List, Literal, Optional, Set, Tuple, Typ
 import torch
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 from nerfstudio.engine.optimizers import Optimizers
-from nerfstudio.engine.trainer import Trainer, TrainerConfig
-from nerfstudio.utils import writer
+from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch.optim import lr_scheduler
 
@@ -20,7 +19,7 @@ from scalar_nerfstudio.blocks.plan import save_plan
 from scalar_nerfstudio.config_checks import OptionError, check_block_counts, check_block_plan, check_options, check_output_dir
 from scalar_nerfstudio.data.validation import SceneError, scan_scene
 from scalar_nerfstudio.engine.contract import Phase, PhasedPipeline
-from scalar_nerfstudio.engine.device import resolve_device_type, resolve_machine
+from scalar_nerfstudio.engine.device import resolve_device_type
 from scalar_nerfstudio.engine.process_settings import apply_process_settings
 from scalar_nerfstudio.engine.preview import write_preview
 from scalar_nerfstudio.engine.report import format_report, scene_model_report, write_report
@@ -39,6 +38,7 @@ from scalar_nerfstudio.runs import (
     save_run_config,
     upgrade_run_config,
 )
+from scalar_nerfstudio.seam.trainer import TrainerBase, set_progress_total, start_step
 
 #: The template whose rate a global group restarts at in a run of one model (``global_restart_fraction``):
 #: the rate a block's group starts with.
@@ -143,19 +143,25 @@ class ScalarTrainerConfig(TrainerConfig):
         return run_dir if is_run else None
 
 
-class ScalarTrainer(Trainer):
-    """Adds to nerfstudio's Trainer: atomic checkpoints, robust resume, schedules scaled to the run."""
+class ScalarTrainer(TrainerBase):
+    """Adds to nerfstudio's Trainer: atomic checkpoints, robust resume, schedules scaled to the run.
+
+    Its config stays as it was given (and as config.yml records it): the device it trains on ("auto":
+    CUDA when there is one), whether it uses mixed precision (on CUDA only) and the steps it trains
+    (:attr:`total_steps`) are held by the trainer.
+    """
 
     config: ScalarTrainerConfig
 
     def __init__(self, config: ScalarTrainerConfig, local_rank: int = 0, world_size: int = 1) -> None:
-        resolve_machine(config)  # device "auto" and mixed precision (CUDA only), before nerfstudio reads them
-        super().__init__(config, local_rank, world_size)
-        self.thread_governor = ThreadGovernor(enabled=config.adapt_threads and config.machine.device_type == "cpu")
+        device = resolve_device_type(config.machine.device_type)  # "auto": CUDA when this process has it
+        super().__init__(config, local_rank, world_size, device_type=device,
+                         mixed_precision=bool(config.mixed_precision) and device == "cuda")
+        self.thread_governor = ThreadGovernor(enabled=config.adapt_threads and device == "cpu")
         self.training_clock = TrainingClock()
         """Training wall-clock and pace: the ETA lines and a time budget's plan (a benchmark pauses it while it evaluates)."""
         self._schedules: Dict[str, WarmupExponentialDecaySchedulerConfig] = {}
-        self._total_from_plan = config.max_num_iterations <= 0
+        self._total_steps = 0
         self._pace_reported = False
         self._replans_done: Set[float] = set()
         self._block_replans_done: Set[Tuple[int, str]] = set()
@@ -167,15 +173,25 @@ class ScalarTrainer(Trainer):
         super().setup(test_mode=test_mode)
         pipeline = self.phased_pipeline
         pipeline.attach_run_dir(self.base_dir)
-        if self._total_from_plan:
-            self.config.max_num_iterations = pipeline.total_steps
-        # nerfstudio's step log (ETA, % done) was set up in Trainer.__init__, before the phases were
+        self._total_steps = self._planned_total(pipeline)
+        # nerfstudio's step log (ETA, % done) was set up in Trainer.setup, before the phases were
         # known, with max_num_iterations 0 (= every phase): give it the real total.
-        writer.GLOBAL_BUFFER["max_iter"] = self.config.max_num_iterations
+        set_progress_total(self._total_steps)
         if test_mode == "val":
             self._record_plan(pipeline)
             CONSOLE.print(pipeline.plan_report())
             CONSOLE.print(f"split saved to {blocks_json_path(self.base_dir)}")
+
+    @property
+    def total_steps(self) -> int:
+        """Steps of the run once set up: ``--max-num-iterations`` when given, else every phase's (a time
+        budget's as planned so far)."""
+        return self._total_steps
+
+    @property
+    def _total_from_plan(self) -> bool:
+        """The run trains every phase (``--max-num-iterations 0``)."""
+        return self.config.max_num_iterations <= 0
 
     @property
     def phased_pipeline(self) -> PhasedPipeline:
@@ -247,7 +263,7 @@ class ScalarTrainer(Trainer):
 
     def _planned_total(self, pipeline: PhasedPipeline) -> int:
         """Steps of the run: ``--max-num-iterations`` when given, else every phase's."""
-        return pipeline.total_steps if self._total_from_plan or self.config.max_num_iterations <= 0 else self.config.max_num_iterations
+        return pipeline.total_steps if self._total_from_plan else self.config.max_num_iterations
 
     # ------------------------------------------------ the clock: ETA, and a time budget's plan (engine/pace.py)
     def _follow_the_clock(self, step: int) -> None:
@@ -364,9 +380,7 @@ class ScalarTrainer(Trainer):
                 retarget(scheduler, new)
                 self._schedules[group] = new
         self._total_steps = self._planned_total(pipeline)
-        if self._total_from_plan:
-            self.config.max_num_iterations = self._total_steps
-        writer.GLOBAL_BUFFER["max_iter"] = self._total_steps
+        set_progress_total(self._total_steps)
         self._record_plan(pipeline, again=True)
     # ------------------------------------------------------------------------------------------------
 
@@ -411,38 +425,35 @@ class ScalarTrainer(Trainer):
                 released.append(group)
         return released
 
-    def _load_checkpoint(self) -> None:
+    def resume_step(self, load_dir: Path) -> Optional[int]:
         """Resume from the newest complete checkpoint; ignores anything that is not ``step-N.ckpt``."""
-        if self.config.load_dir is not None and self.config.load_step is None:
-            load_dir = Path(self.config.load_dir)
-            step = latest_checkpoint_step(load_dir)
-            if step is None:
-                raise FileNotFoundError(f"--load-dir {load_dir}: no step-N.ckpt checkpoint in that folder.")
-            self.config.load_step = step
-        super()._load_checkpoint()
-        if self.config.load_dir is not None and self.config.load_step is not None:  # the training time it had spent
-            path = Path(self.config.load_dir) / checkpoint_name(self.config.load_step)
+        step = latest_checkpoint_step(load_dir)
+        if step is None:
+            raise FileNotFoundError(f"--load-dir {load_dir}: no step-N.ckpt checkpoint in that folder.")
+        return step
+
+    def checkpoint_loaded(self, step: Optional[int]) -> None:
+        """Read the training time the resumed run had spent (its checkpoint's ``training_s``)."""
+        if self.config.load_dir is not None and step is not None:
+            path = Path(self.config.load_dir) / checkpoint_name(step)
             trained = torch.load(path, map_location="cpu", weights_only=True, mmap=True).get("training_s")
             self._trained_s_before = None if trained is None else float(trained)
 
     def train(self) -> None:
-        """Train up to ``max_num_iterations`` steps in total.
+        """Train up to :attr:`total_steps` steps in total.
 
         nerfstudio trains ``max_num_iterations`` *more* steps after a resume, which would run the
         learning-rate schedule past its end; here a resumed run trains only the remaining steps.
         """
-        total = self.config.max_num_iterations
+        total = self._planned_total(self.phased_pipeline)
         self._total_steps = total
-        self.step = max(self._start_step - 1, 0)
-        self.release_finished_optimizer_state(self._start_step)  # a resumed run's finished phases
+        first = start_step(self)
+        self.step = max(first - 1, 0)
+        self.release_finished_optimizer_state(first)  # a resumed run's finished phases
         # a new run has trained for 0 s; a resumed one for what its checkpoint says (None: a checkpoint without it)
-        self.training_clock.start(self._start_step, self._trained_s_before if self._start_step > 0 else 0.0)
+        self.training_clock.start(first, self._trained_s_before if first > 0 else 0.0)
         # A time budget waiting for its pace may train up to its longest plan; train_iteration stops it at the planned end.
-        self.config.max_num_iterations = max(self._loop_bound(total) - self._start_step, 0)
-        try:
-            super().train()
-        finally:  # the run's total: a time budget's as planned while it trained
-            self.config.max_num_iterations = self._total_steps if self._total_from_plan else total
+        self.train_for(max(self._loop_bound(total) - first, 0))
         self._report_models()
 
     def _report_models(self) -> None:
@@ -466,8 +477,8 @@ class ScalarTrainer(Trainer):
     def save_checkpoint(self, step: int) -> None:
         """Save model, optimizers, schedulers and scaler atomically; keep only the latest if configured.
         A run stopped at its planned end (nerfstudio then names the step after its last) is saved as its last step."""
-        total = getattr(self, "_total_steps", None)
-        if total is not None and self.stop_training and step >= total > 0:
+        total = self._total_steps
+        if self.stop_training and step >= total > 0:
             step = total - 1
         self.checkpoint_dir.mkdir(parents=True, exist_ok=True)
         ckpt_path = self.checkpoint_dir / checkpoint_name(step)

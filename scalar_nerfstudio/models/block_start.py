@@ -66,13 +66,14 @@ def block_model_config(config: ScalarModelConfig, capacity: Optional[BlockCapaci
 
 
 def new_block_model(config: ScalarModelConfig, *, capacity: Optional[BlockCapacity], block: Block, block_init: BlockInit,
-                    scene_box: SceneBox, num_images: int) -> ScalarModel:
+                    scene_box: SceneBox, num_images: int, scene_radius: Optional[float]) -> ScalarModel:
     """Block ``block``'s model, freshly initialised: in the global model's frame (``block_init``
-    global) or in its own (:func:`block_region`), with ``num_images`` appearance embeddings."""
+    global) or in its own (:func:`block_region`), with ``num_images`` appearance embeddings, its rays
+    ending at the sphere of ``scene_radius`` (None: unbounded)."""
     centre, radius = ((0.0, 0.0, 0.0), 1.0) if block_init == "global" else block_region(block)
     return ScalarModel(
         config=block_model_config(config, capacity), scene_box=scene_box,
-        num_train_data=num_images, region_centre=centre, region_radius=radius,
+        num_train_data=num_images, region_centre=centre, region_radius=radius, scene_radius=scene_radius,
     )
 
 

@@ -67,15 +67,14 @@ _NORMALS_CHUNK = 1 << 15
 NORMALS_MIN_WEIGHT = 1e-4
 
 
-def near_far_collider(config: "ScalarModelConfig") -> BoundedNearFarCollider:
-    """Rays from ``config.near_plane`` to ``config.far_plane``, inside the sphere of
-    ``config.scene_radius`` when there is one; outside training the near plane is kept, unless
-    ``config.reset_near_plane`` (nerfstudio's default) starts rays at the camera (an older run's
-    config.yml gets ``scene_radius = None``, unbounded as it was trained, from :mod:`scalar_nerfstudio.runs`'
-    migration)."""
+def near_far_collider(config: "ScalarModelConfig", *, scene_radius: Optional[float]) -> BoundedNearFarCollider:
+    """Rays from ``config.near_plane`` to ``config.far_plane``, inside the sphere of ``scene_radius``
+    when there is one (a model's: its config's ``scene_radius``, or the one the pipeline derived);
+    outside training the near plane is kept, unless ``config.reset_near_plane`` (nerfstudio's default)
+    starts rays at the camera."""
     return BoundedNearFarCollider(
         near_plane=config.near_plane, far_plane=config.far_plane, reset_near_plane=config.reset_near_plane,
-        scene_radius=config.scene_radius,
+        scene_radius=scene_radius,
     )
 
 
@@ -99,7 +98,8 @@ class ScalarModelConfig(ModelConfig):
     # with sky and far content, a bound set by hand can break training.
     scene_radius: Optional[float] = None
     """Keep rays inside the sphere of this radius around the origin (world units of the normalised
-    scene); None: unbounded. Set by ``--pipeline.scene-radius-from-depth`` from the depth images."""
+    scene); None: unbounded, unless ``--pipeline.scene-radius-from-depth`` fits one to the depth images
+    (the pipeline holds it, and the run's blocks.json records it)."""
     num_samples_per_ray: int = 64
     """Intervals per ray before empty-space and occlusion skipping."""
     # A coarse start makes the warm-up steps cheaper and trains better; a block seeded from the global
@@ -143,7 +143,12 @@ class ScalarModelConfig(ModelConfig):
 class ScalarModel(NormalsOutput, Model):
     """Hash-grid NeRF with an occupancy grid, a shared-decoder field and per-image appearance.
 
+    Its collider is its own (:func:`near_far_collider`, held as ``collider``): nerfstudio's
+    ``enable_collider`` and ``collider_params`` are not read, and its config is not changed.
+
     Keyword args (besides nerfstudio's ``scene_box`` / ``num_train_data``):
+        scene_radius: rays end where they leave the sphere of this radius (default: the config's
+            ``scene_radius``; the pipeline passes the radius it derived from the depth images).
         region_centre: [3] world point mapped to the origin before contraction (default 0).
         region_radius: world distance mapped to 1 before contraction (default 1). A block's local
             model gets its scaled AABB's centre and half-diagonal, so its hash grid spends its
@@ -154,10 +159,10 @@ class ScalarModel(NormalsOutput, Model):
 
     def populate_modules(self) -> None:
         """Build the field, the occupancy grid and the metrics (called by ``Model.__init__``)."""
-        self.config.enable_collider = True
-        self.config.collider_params = {"near_plane": self.config.near_plane, "far_plane": self.config.far_plane}
         super().populate_modules()
-        self.collider = near_far_collider(self.config)
+        self.scene_radius: Optional[float] = self.kwargs.get("scene_radius", self.config.scene_radius)
+        """Rays end where they leave the sphere of this radius (None: unbounded)."""
+        self.collider = near_far_collider(self.config, scene_radius=self.scene_radius)
         self._init_normals_output(self.config.render_normals)
         centre = torch.as_tensor(self.kwargs.get("region_centre", (0.0, 0.0, 0.0)), dtype=torch.float32).reshape(3)
         radius = float(self.kwargs.get("region_radius", 1.0))

@@ -50,6 +50,7 @@ from scalar_nerfstudio.models.block_store import BlockStore
 from scalar_nerfstudio.models.fused_render import FusedRenderer, FusionSettings
 from scalar_nerfstudio.models.normals import NormalsOutput
 from scalar_nerfstudio.models.scalar_model import ScalarModel, ScalarModelConfig, near_far_collider
+from scalar_nerfstudio.seam import PIPELINE_MODEL_KEY_PREFIX
 
 __all__ = [
     "BLOCK_INITS",
@@ -143,11 +144,12 @@ class ScalarSceneModel(NormalsOutput, Model):
     config: ScalarSceneModelConfig
 
     def populate_modules(self) -> None:
-        """Build the global model and the block models."""
-        self.config.enable_collider = True
-        self.config.collider_params = {"near_plane": self.config.near_plane, "far_plane": self.config.far_plane}
+        """Build the global model and the block models (their colliders are their own, as
+        :class:`ScalarModel`'s: the config is not changed)."""
         super().populate_modules()
-        self.collider = near_far_collider(self.config)
+        self.scene_radius: Optional[float] = self.kwargs.get("scene_radius", self.config.scene_radius)
+        """Every model's rays end where they leave the sphere of this radius (None: unbounded)."""
+        self.collider = near_far_collider(self.config, scene_radius=self.scene_radius)
         self._init_normals_output(self.config.render_normals)
         self.heap_release = HeapRelease()
         """Gives the memory camera renders freed back to the operating system (CPU; see get_outputs_for_camera)."""
@@ -161,7 +163,8 @@ class ScalarSceneModel(NormalsOutput, Model):
         """Models (block indices, "global") rendered since the last camera started (for reports)."""
         self.rays_rendered_by_block: Dict[int, int] = {}
         """Rays each block rendered since the last camera started (for reports)."""
-        self.global_model = ScalarModel(config=self.config, scene_box=self.scene_box, num_train_data=self.num_train_data)
+        self.global_model = ScalarModel(config=self.config, scene_box=self.scene_box, num_train_data=self.num_train_data,
+                                        scene_radius=self.scene_radius)
         self._block_capacities: Dict[int, BlockCapacity] = self.kwargs.get("block_capacities") or {}
         self._num_block_images = {b.index: len(b.image_indices) for b in self.split.blocks}  # sizes appearance embeddings
         self.blocks = nn.ModuleDict()
@@ -189,11 +192,12 @@ class ScalarSceneModel(NormalsOutput, Model):
     def _new_block_model(self, index: int) -> ScalarModel:
         """Block ``index``'s model, freshly initialised (its own frame, or the global one)."""
         return new_block_model(self.config, capacity=self._block_capacities.get(index), block=self.split.blocks[index],
-                               block_init=self.block_init, scene_box=self.scene_box, num_images=self._num_block_images[index])
+                               block_init=self.block_init, scene_box=self.scene_box, num_images=self._num_block_images[index],
+                               scene_radius=self.scene_radius)
 
     # -------------------------------------------------------------- checkpoint layout
-    #: Where the pipeline keeps this model in its state dict (nerfstudio's ``Pipeline._model``).
-    PIPELINE_KEY_PREFIX = "_model."
+    #: Where the pipeline keeps this model in its state dict (nerfstudio's ``_model.``: ``scalar_nerfstudio.seam``).
+    PIPELINE_KEY_PREFIX = PIPELINE_MODEL_KEY_PREFIX
 
     @classmethod
     def global_state(cls, pipeline_state: Dict[str, Tensor]) -> Dict[str, Tensor]:

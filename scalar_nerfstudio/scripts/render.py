@@ -12,7 +12,7 @@ from __future__ import annotations
 import contextlib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator, Optional, Union
+from typing import Any, Iterator, Optional, Union
 
 import tyro
 from nerfstudio.scripts import render as ns_render
@@ -20,6 +20,7 @@ from typing_extensions import Annotated
 
 from scalar_nerfstudio.fusion import FusionModeError, parse_fusion_mode
 from scalar_nerfstudio.runs import RunError, check_trained_run
+from scalar_nerfstudio.seam.render_command import after_each_load
 
 PROG = "scalar-nerf-render"
 
@@ -30,10 +31,8 @@ def fusion_applied(fusion: Optional[str]) -> Iterator[None]:
     if fusion is None:
         yield
         return
-    original = ns_render.eval_setup
 
-    def eval_setup_with_fusion(*args, **kwargs):
-        config, pipeline, checkpoint, step = original(*args, **kwargs)
+    def set_fusion(config: Any, pipeline: Any) -> None:
         model = pipeline.model
         if not hasattr(model, "set_fusion"):
             raise SystemExit(f"--fusion: {config.method_name} runs have no fusion (only scalar-nerf runs do)")
@@ -41,13 +40,9 @@ def fusion_applied(fusion: Optional[str]) -> Iterator[None]:
             model.set_fusion(fusion)
         except FusionModeError as error:
             raise SystemExit(f"--fusion: {error}") from None
-        return config, pipeline, checkpoint, step
 
-    ns_render.eval_setup = eval_setup_with_fusion
-    try:
+    with after_each_load(set_fusion):
         yield
-    finally:
-        ns_render.eval_setup = original
 
 
 def check_arguments(load_config: Path, fusion: Optional[str]) -> None:
