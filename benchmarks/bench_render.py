@@ -2,7 +2,7 @@
 
 Loads ``RUN/config.yml`` as ``ns-eval`` does, renders every eval view once to warm up (kernel builds,
 the allocator's first growth), then renders them ``--rounds`` more times per fusion mode and prints
-the median and fastest time per view, and the held-out PSNR of the last round. Each mode is timed
+the median and fastest time per view (and the median per pixel), and the held-out PSNR of the last round. Each mode is timed
 in alternating rounds, so a slow moment of the machine does not fall on one mode only.
 
     python benchmarks/bench_render.py --load-config outputs/bench_training/runs/castle-P30/scalar-nerf/<ts>/config.yml
@@ -81,11 +81,13 @@ def main() -> None:
         label = mode if setting_text is None else f"{mode} {setting_text}"
         row = {"fusion": mode, "setting": setting_text,
                "median_ms": 1000 * statistics.median(times[variant]), "min_ms": 1000 * min(times[variant]),
+               "median_us_per_pixel": 1e6 * statistics.median(times[variant]) / (width * height),
                "psnr": sum(scores[variant]) / len(scores[variant]) if scores[variant] else None,
                "views": len(cameras), "width": width, "height": height}
         results.append(row)
         score = f", held-out PSNR {row['psnr']:.2f} dB" if row["psnr"] is not None else ""
-        print(f"{label:<12} median {row['median_ms']:.1f} ms / view, fastest {row['min_ms']:.1f} ms{score}")
+        print(f"{label:<12} median {row['median_ms']:.1f} ms / view ({row['median_us_per_pixel']:.2f} us / pixel), "
+              f"fastest {row['min_ms']:.1f} ms{score}")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps({"config": str(args.load_config), "device": device, "rounds": args.rounds, "results": results}, indent=2))
