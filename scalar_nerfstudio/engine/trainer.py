@@ -327,8 +327,10 @@ class ScalarTrainer(TrainerBase):
         if index > 0 and not one_machine:
             return
         done = step + 1 - phase.start_step
-        due = [name for name, at in (("start", min(BLOCK_CALIBRATION_STEPS, max(phase.num_steps // 3, 1))), ("half", phase.num_steps // 2))
-               if (name == "start" or one_machine) and done >= at and (index, name) not in self._block_replans_done]
+        points = {"start": min(BLOCK_CALIBRATION_STEPS, max(phase.num_steps // 3, 1))}
+        if one_machine:
+            points["half"] = phase.num_steps // 2
+        due = [name for name, at in points.items() if done >= at and (index, name) not in self._block_replans_done]
         if not due or phase.num_steps - done <= 1:
             return
         self._block_replans_done.update((index, name) for name in due)
