@@ -32,7 +32,7 @@ from typing import Any, Dict, List
 def _peak_rss_of(command: List[str]) -> Dict[str, Any]:
     """Run ``command`` in a child and return its peak RSS (this wrapper runs once per measurement)."""
     start = time.perf_counter()
-    result = subprocess.run(command, capture_output=True, text=True)
+    result = subprocess.run(command, capture_output=True, text=True, check=False)
     if result.returncode != 0:
         raise SystemExit(f"{' '.join(command[:6])} ... failed:\n{result.stdout[-3000:]}\n{result.stderr[-3000:]}")
     return {"peak_rss_mib": round(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024), "seconds": round(time.perf_counter() - start, 1)}
@@ -96,7 +96,7 @@ def measure(scene: Path, work: Path, args: argparse.Namespace, num_blocks: int) 
     checkpoint = max((run / "nerfstudio_models").glob("step-*.ckpt"))
     block_files = sorted((run / "block_models").glob("block-*.ckpt"))
     render = subprocess.run([sys.executable, __file__, "--render", str(run / "config.yml"), "--views", str(args.views)],
-                            capture_output=True, text=True)
+                            capture_output=True, text=True, check=False)
     if render.returncode != 0:
         raise SystemExit(render.stdout[-3000:] + render.stderr[-3000:])
     return {

@@ -56,8 +56,8 @@ def train_one(method: str, data: str, *, downscale: int, seconds: float, steps: 
     """
     import torch
 
-    from scalar_nerfstudio.engine.timing import time_train_iterations
     from scalar_nerfstudio.benchmarking.runner import setup_trainer, trainer_config
+    from scalar_nerfstudio.engine.timing import time_train_iterations
 
     # the benchmark runner's set-up (every 8th image held out, no evaluation or checkpoints while
     # training; LPIPS stubbed out for nerfacto, whose weights would be downloaded), on ``device``

@@ -27,8 +27,8 @@ def main() -> None:
                         help="the decoder's CPU training path, as bench_decoder_kernels.py names them (auto: the config's)")
     args = parser.parse_args()
 
-    from scalar_nerfstudio.engine.timing import time_train_iterations
     from scalar_nerfstudio.benchmarking.runner import setup_trainer, trainer_config
+    from scalar_nerfstudio.engine.timing import time_train_iterations
 
     # the benchmark's trainer set-up: eval every 8th image, no evaluation or checkpoints while training
     config = trainer_config({

@@ -15,11 +15,11 @@ from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataPars
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.plugins.types import MethodSpecification
 
+from scalar_nerfstudio.data.datamanager import ScalarDataManagerConfig
+from scalar_nerfstudio.engine.block_trainer import ScalarBlockTrainerConfig
 from scalar_nerfstudio.engine.device import AutoMachineConfig
 from scalar_nerfstudio.engine.schedulers import WarmupExponentialDecaySchedulerConfig
-from scalar_nerfstudio.engine.block_trainer import ScalarBlockTrainerConfig
 from scalar_nerfstudio.engine.trainer import ScalarTrainerConfig
-from scalar_nerfstudio.data.datamanager import ScalarDataManagerConfig
 from scalar_nerfstudio.models.scene_model import ScalarSceneModelConfig
 from scalar_nerfstudio.pipeline import ScalarPipelineConfig
 

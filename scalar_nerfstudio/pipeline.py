@@ -21,12 +21,17 @@ from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch.cuda.amp.grad_scaler import GradScaler
 
-from scalar_nerfstudio.blocks.capacity import BlockCapacity, LayoutScale, auto_num_blocks, layout_scale
+from scalar_nerfstudio.blocks.capacity import BlockCapacity, LayoutScale, auto_num_blocks
 from scalar_nerfstudio.blocks.length import LengthSettings, TrainingLength, parse_duration, plan_length
 from scalar_nerfstudio.blocks.observation import block_observation
 from scalar_nerfstudio.blocks.plan import BlockPlan, PlanSettings, load_plan, plan_blocks, recorded_scene_bound
 from scalar_nerfstudio.blocks.split import BlockSplit, BlockSplitError, load_blocks_json
-from scalar_nerfstudio.data.datamanager import ScalarDataManagerConfig, camera_centres, camera_layout, training_image_names
+from scalar_nerfstudio.data.datamanager import (
+    ScalarDataManagerConfig,
+    camera_centres,
+    camera_layout,
+    training_image_names,
+)
 from scalar_nerfstudio.data.depth import scene_radius_logged
 from scalar_nerfstudio.engine.contract import Phase
 from scalar_nerfstudio.engine.eval_progress import EvalProgress
@@ -36,7 +41,6 @@ from scalar_nerfstudio.pipeline_text import format_eval_metrics, format_plan_rep
 from scalar_nerfstudio.runs import RUN_SCHEMA_VERSION, block_models_dir
 from scalar_nerfstudio.seam.pipeline import PipelineBase
 from scalar_nerfstudio.viewer import BlockOverlay, CoarseFirstRender, FinishedRunPanel, fusion_dropdown
-
 
 LrSchedule = Literal["restart", "per-phase"]
 
@@ -492,9 +496,3 @@ class ScalarPipeline(PipelineBase):
     def _blocks_follow_global_model(self) -> bool:
         """Whether blocks train from the global model, in this run or in scalar-nerf-block runs."""
         return not self.plan.single_model and (self.split.num_blocks > 1 or self.config.train_blocks)
-
-
-def parsed_layout_scale(parsed) -> LayoutScale:
-    """:class:`LayoutScale` of the parsed training cameras."""
-    cameras = camera_layout(parsed)
-    return layout_scale(cameras.centres, cameras.directions, cameras.focal_px)

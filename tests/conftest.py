@@ -27,12 +27,12 @@ import torch
 from filelock import FileLock
 from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.data.scene_box import SceneBox
-
 from prerequisites import CASTLE, apply_needs_markers, need_castle
-from scalar_nerfstudio.scenes.courtyard import write_scene
-from scalar_nerfstudio.runs import latest_checkpoint_step
+
 from scalar_nerfstudio.fields.scalar_field import ScalarFieldConfig
 from scalar_nerfstudio.models.scalar_model import ScalarModel, ScalarModelConfig
+from scalar_nerfstudio.runs import latest_checkpoint_step
+from scalar_nerfstudio.scenes.courtyard import write_scene
 
 #: This pytest-xdist worker's name ("gw0", ...); None when pytest runs without workers.
 XDIST_WORKER = os.environ.get("PYTEST_XDIST_WORKER")
@@ -157,7 +157,7 @@ def ns_eval(run: Path, output: Path, cwd: Optional[Path] = None) -> subprocess.C
     (a run trained with a relative ``--data`` is evaluated from the directory it was trained in)."""
     return subprocess.run(
         [sys.executable, "-m", "nerfstudio.scripts.eval", "--load-config", str(run / "config.yml"), "--output-path", str(output)],
-        capture_output=True, text=True, timeout=600, cwd=cwd,
+        capture_output=True, text=True, timeout=600, cwd=cwd, check=False
     )
 
 
@@ -219,7 +219,7 @@ def trained_castle_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
     def train(output_dir: Path) -> Path:
         command = ns_train_command(CASTLE, output_dir, "--max-num-iterations", str(TRAIN_STEPS), "--steps-per-save", str(TRAIN_STEPS), *castle_args())
-        result = subprocess.run(command, capture_output=True, text=True, timeout=1200)
+        result = subprocess.run(command, capture_output=True, text=True, timeout=1200, check=False)
         assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
         (run,) = run_dirs(output_dir)
         return run
@@ -277,7 +277,7 @@ def full_run(scene: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     """``ns-train scalar-nerf`` through the global phase and both blocks, with nerfstudio's step log
     on (its default); what the command printed is kept beside the run (:func:`full_run_log`)."""
     def train(output_dir: Path) -> Path:
-        result = subprocess.run(ns_train_command(scene, output_dir, *TINY, step_log=True), capture_output=True, text=True, timeout=900)
+        result = subprocess.run(ns_train_command(scene, output_dir, *TINY, step_log=True), capture_output=True, text=True, timeout=900, check=False)
         (output_dir / "ns-train.log").write_text(result.stdout + result.stderr)
         assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
         (run,) = run_dirs(output_dir)

@@ -15,14 +15,26 @@ from typing import Optional, Tuple
 
 import numpy as np
 import pytest
+from bad_scenes import (
+    CASES,
+    broken_copy,
+    image_file,
+    read_transforms,
+    truncated_jpeg,
+    val_list_missing,
+    write_transforms,
+)
 from PIL import Image
 
-from scalar_nerfstudio.config_checks import OptionError, check_block_plan, check_options, check_output_dir, check_pipeline_options
-from scalar_nerfstudio.scenes.courtyard import write_scene
+from scalar_nerfstudio.config_checks import (
+    OptionError,
+    check_block_plan,
+    check_options,
+    check_output_dir,
+    check_pipeline_options,
+)
 from scalar_nerfstudio.data.validation import SceneError, check_scene, scan_scene, to_rgb_array
-
-from bad_scenes import CASES, broken_copy, image_file, read_transforms, truncated_jpeg, val_list_missing, write_transforms
-
+from scalar_nerfstudio.scenes.courtyard import write_scene
 
 #: More of each message, checked in the unit test.
 DETAILS = {

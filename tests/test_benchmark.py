@@ -11,9 +11,9 @@ from unittest import mock
 
 import numpy as np
 import pytest
-
 from prerequisites import REPO
 from quality import eval_renders, load_pipeline
+
 from scalar_nerfstudio.benchmarking.report import on_pareto_front
 from scalar_nerfstudio.benchmarking.schedule import variant_spec
 from scalar_nerfstudio.scripts.benchmark import BenchmarkConfig, plan
@@ -29,7 +29,7 @@ def test_quick_benchmark_end_to_end(tmp_path: Path) -> None:
     result = subprocess.run(
         ["scalar-nerf-benchmark", "--quick", "--output-dir", str(output), "--variants", "ngp-t", "scalar", "nerfacto",
          "--no-match-wall-clock"],  # (the one-model run trained again for the blocks' wall-clock: tested below)
-        capture_output=True, text=True, timeout=900,
+        capture_output=True, text=True, timeout=900, check=False
     )
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     report = json.loads((output / "results.json").read_text())
@@ -90,7 +90,7 @@ def test_quick_benchmark_end_to_end(tmp_path: Path) -> None:
     again = subprocess.run(
         ["scalar-nerf-benchmark", "--quick", "--output-dir", str(output), "--variants", "ngp-t", "scalar", "nerfacto",
          "--no-match-wall-clock", "--resume"],
-        capture_output=True, text=True, timeout=300,
+        capture_output=True, text=True, timeout=300, check=False
     )
     assert again.returncode == 0, again.stdout[-3000:] + again.stderr[-3000:]
     assert again.stdout.count("reusing its finished run") == 4  # global, ngp-t, scalar, nerfacto
@@ -415,7 +415,7 @@ def test_train_vs_heldout_scores_held_out_views_as_ns_eval_does(full_run: Path, 
     result = subprocess.run(
         [sys.executable, str(REPO / "benchmarks" / "train_vs_heldout.py"), "--load-config", str(full_run / "config.yml"),
          "--every", "4", "--json", str(tmp_path / "rows.json")],
-        capture_output=True, text=True, timeout=600,
+        capture_output=True, text=True, timeout=600, check=False
     )
     assert result.returncode == 0, result.stderr[-2000:]
     (row,) = json.loads((tmp_path / "rows.json").read_text()).values()
@@ -462,11 +462,11 @@ def test_the_same_spec_trains_the_same_model_and_another_seed_another(scene: Pat
 
 def test_train_vs_heldout_refuses_bad_options(tmp_path: Path) -> None:
     script = str(REPO / "benchmarks" / "train_vs_heldout.py")
-    result = subprocess.run([sys.executable, script, "--load-config", str(tmp_path / "none.yml")], capture_output=True, text=True, timeout=120)
+    result = subprocess.run([sys.executable, script, "--load-config", str(tmp_path / "none.yml")], capture_output=True, text=True, timeout=120, check=False)
     assert result.returncode != 0 and "no such config.yml" in result.stderr
     (tmp_path / "config.yml").write_text("{}")
     result = subprocess.run([sys.executable, script, "--load-config", str(tmp_path / "config.yml"), "--every", "0"],
-                            capture_output=True, text=True, timeout=120)
+                            capture_output=True, text=True, timeout=120, check=False)
     assert result.returncode != 0 and "--every 0: must be >= 1" in result.stderr
 
 

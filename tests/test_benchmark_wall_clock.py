@@ -117,7 +117,12 @@ def test_the_one_models_train_with_each_schedule_and_their_decay_runs_are_rerun_
     run (``one_model_restart`` 0), in the default variant list; a decay run that ended before the blocks'
     wall-clock is trained again for it as ``ngp-t`` is (``ngp-t-decay-wall-clock``), and labelled."""
     from scalar_nerfstudio.benchmarking.report import labels
-    from scalar_nerfstudio.benchmarking.variants import VARIANTS, one_model_schedule, wall_clock_retry, wall_clock_variants
+    from scalar_nerfstudio.benchmarking.variants import (
+        VARIANTS,
+        one_model_schedule,
+        wall_clock_retry,
+        wall_clock_variants,
+    )
 
     assert {"ngp-t", "ngp-t2", "ngp-t-decay", "ngp-t2-decay"} <= set(VARIANTS) == set(BenchmarkConfig().variants)
     assert one_model_schedule("ngp-t2-decay") == ("ngp-t2", "decay") and one_model_schedule("ngp-t") == ("ngp-t", "restart")

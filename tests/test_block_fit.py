@@ -6,8 +6,8 @@ from pathlib import Path
 
 import pytest
 import torch
-
 from conftest import tiny_trainer
+
 from scalar_nerfstudio.encodings import HashGridEncoding
 from scalar_nerfstudio.models.block_fit import fit_encoding, occupied_cell_sampler
 from scalar_nerfstudio.models.scalar_model import EVAL_BACKGROUND

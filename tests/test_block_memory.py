@@ -9,9 +9,9 @@ from typing import Dict
 
 import pytest
 import torch
+from conftest import SMALL_FIELD, ray_bundle, small_scalar_model
 from nerfstudio.data.scene_box import SceneBox
 
-from conftest import SMALL_FIELD, ray_bundle, small_scalar_model
 from scalar_nerfstudio.blocks.split import Block, BlockSplit
 from scalar_nerfstudio.fields.scalar_field import ScalarFieldConfig
 from scalar_nerfstudio.models.block_memory import (

@@ -11,14 +11,15 @@ from typing import List
 
 import pytest
 import torch
+from conftest import SMALL_FIELD, ray_bundle
 from nerfstudio.data.scene_box import SceneBox
 
 from scalar_nerfstudio.blocks.split import Block, BlockSplit
 from scalar_nerfstudio.fields.scalar_field import ScalarFieldConfig
 from scalar_nerfstudio.fusion import (
-    parse_fusion_mode,
-    fuse_outputs,
     fuse_global_guided,
+    fuse_outputs,
+    parse_fusion_mode,
     region_scores,
     score_weights,
     select_blocks,
@@ -27,7 +28,6 @@ from scalar_nerfstudio.fusion import (
 )
 from scalar_nerfstudio.models.block_selection import BlockRegions, blocks_for, select_rays
 from scalar_nerfstudio.models.scene_model import ScalarSceneModel, ScalarSceneModelConfig
-from conftest import SMALL_FIELD, ray_bundle
 
 NAN, INF = float("nan"), float("inf")
 

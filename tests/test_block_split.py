@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from prerequisites import CASTLE, need_castle
+
 from scalar_nerfstudio.blocks.split import (
     THIN_AXIS_FRACTION,
     BlockSplit,
@@ -20,7 +20,6 @@ from scalar_nerfstudio.blocks.split import (
     save_blocks_json,
     split_cameras,
 )
-
 
 
 def _castle() -> tuple[np.ndarray, list[str]]:

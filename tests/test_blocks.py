@@ -15,14 +15,15 @@ import numpy as np
 import pytest
 import torch
 import yaml
-from nerfstudio.cameras.rays import RayBundle
-
 from conftest import BLOCK_STEPS, NUM_BLOCKS, tiny_trainer, trained_block_tensors
 from fake_runs import fake_run
+from nerfstudio.cameras.rays import RayBundle
 from prerequisites import CASTLE, requires_castle
+
 from scalar_nerfstudio.blocks.split import load_blocks_json, split_cameras
-from scalar_nerfstudio.runs import RUN_SCHEMA_VERSION, latest_checkpoint_step
 from scalar_nerfstudio.method_configs import scalar_nerf
+from scalar_nerfstudio.runs import RUN_SCHEMA_VERSION, latest_checkpoint_step
+
 
 def _pipeline_state(run: Path) -> Dict[str, torch.Tensor]:
     step = latest_checkpoint_step(run / "nerfstudio_models")

@@ -7,14 +7,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
+from conftest import tiny_trainer
+from hypothesis import given, settings, strategies as st
+from prerequisites import CASTLE, FOX, SCENES, needs
 
 from scalar_nerfstudio.blocks.capacity import auto_num_blocks, block_capacity, layout_scale
 from scalar_nerfstudio.scenes.courtyard import look_at
-from conftest import tiny_trainer
-from prerequisites import CASTLE, FOX, SCENES, needs
-
 
 
 def _orbit(num: int, radius: float, elevation_deg: float) -> np.ndarray:
@@ -109,7 +107,7 @@ def _parsed(scene: Path, downscale: int):
 @needs(f"castle-P30 and fox ({CASTLE.parent})", CASTLE.is_dir() and FOX.is_dir(), provided_by=SCENES)
 def test_real_scenes_fox_one_block_castle_several() -> None:
     """The issue's examples, through nerfstudio's dataparser (the training frame and focal lengths)."""
-    from scalar_nerfstudio.pipeline import parsed_layout_scale
+    from scalar_nerfstudio.data.datamanager import parsed_layout_scale
 
     def k(scene: Path, downscale: int) -> int:
         parsed = _parsed(scene, downscale)
@@ -131,7 +129,7 @@ def test_real_scenes_fox_one_block_castle_several() -> None:
     res_low=st.integers(1, 4096),
     res_span=st.integers(0, 4096),
 )
-def test_block_capacity_respects_bounds(extent: float, pixels: int, low: int, span: int, res_low: int, res_span: int) -> None:
+def test_block_capacity_respects_bounds(*, extent: float, pixels: int, low: int, span: int, res_low: int, res_span: int) -> None:
     scale = layout_scale(np.array([[0.0, 0, 0], [10.0, 0, 0]]), np.array([[0.0, 1, 0], [0.0, 1, 0]]), np.array([500.0, 500.0]))
     capacity = block_capacity(scale, block_extent=extent, block_pixels=pixels, log2_hashmap_bounds=(low, low + span),
                               max_resolution_bounds=(res_low, res_low + res_span))

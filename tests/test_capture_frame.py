@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 import torch
 
-from scalar_nerfstudio.scenes.courtyard import look_at
 from scalar_nerfstudio.process import geo
 from scalar_nerfstudio.process.align import capture_frame
 from scalar_nerfstudio.process.errors import ProcessDataError
 from scalar_nerfstudio.process.export_frame import DataparserTransform, map_file, read_transform
+from scalar_nerfstudio.scenes.courtyard import look_at
 from scalar_nerfstudio.scripts import export_frame as export_frame_cli
 
 HAS_PYCOLMAP = importlib.util.find_spec("pycolmap") is not None

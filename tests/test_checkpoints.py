@@ -15,9 +15,9 @@ from pathlib import Path
 import pytest
 import torch
 import yaml
-
 from conftest import TRAIN_STEPS, free_port
 from prerequisites import requires_castle
+
 from scalar_nerfstudio.atomic_io import PARTIAL_SUFFIX, atomic_torch_save
 from scalar_nerfstudio.runs import latest_checkpoint_step
 

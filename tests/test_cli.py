@@ -8,7 +8,6 @@ import sys
 from pathlib import Path
 
 import pytest
-
 from conftest import TOTAL_STEPS, free_port, full_run_log, run_dirs
 
 
@@ -32,7 +31,7 @@ def test_demo_command_trains_on_the_builtin_scene(tmp_path: Path) -> None:
     result = subprocess.run(
         ["scalar-nerf-demo", "--scene-dir", str(tmp_path / "scene"), "--output-dir", str(tmp_path / "outputs"), "--max-num-iterations", "30",
          "--", "--viewer.websocket-port", str(free_port()), "--logging.local-writer.enable", "False"],
-        capture_output=True, text=True, timeout=900, cwd=tmp_path,
+        capture_output=True, text=True, timeout=900, cwd=tmp_path, check=False
     )
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     (run,) = run_dirs(tmp_path / "outputs")

@@ -16,7 +16,6 @@ from typing import Dict, List, Tuple
 
 import pytest
 import torch
-
 from cli_driver import DRIVER
 from fake_runs import fake_run, foreign_run
 
@@ -82,7 +81,7 @@ def results(work: Path, tmp_path_factory: pytest.TempPathFactory) -> Dict[str, d
     jobs = [{"command": command, "args": args, "cwd": str(work), **{k: str(logs / f"{name}.{k}") for k in ("stdout", "stderr", "rc")}}
             for name, (command, args, _) in CASES.items()]
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    driver = subprocess.run([sys.executable, "-c", DRIVER, json.dumps(jobs)], capture_output=True, text=True, timeout=600, env=env)
+    driver = subprocess.run([sys.executable, "-c", DRIVER, json.dumps(jobs)], capture_output=True, text=True, timeout=600, env=env, check=False)
     assert driver.returncode == 0, driver.stderr[-3000:]
     after = _digests(work)
     changed = sorted(k for k in set(before) | set(after) if before.get(k) != after.get(k))
@@ -105,7 +104,7 @@ def test_the_command_refuses_in_one_line_and_writes_nothing(results: Dict[str, d
 def test_a_command_started_afresh_prints_one_line(work: Path) -> None:
     """As a user starts it: the imports' deprecation warnings of torch and nerfstudio are not shown."""
     result = subprocess.run(["scalar-nerf-assemble", "--global-run", "runs/none", "--block-runs", "runs/block1"],
-                            capture_output=True, text=True, timeout=300, cwd=work, env={**os.environ, "OMP_NUM_THREADS": "1"})
+                            capture_output=True, text=True, timeout=300, cwd=work, env={**os.environ, "OMP_NUM_THREADS": "1"}, check=False)
     assert result.returncode == 1 and result.stdout == ""
     assert result.stderr.strip().splitlines() == ["scalar-nerf-assemble: runs/none: no config.yml there (not a nerfstudio run folder)"], result.stderr
 

@@ -41,7 +41,7 @@ def test_importing_the_method_configs_does_not_look_for_a_gpu() -> None:
         "import scalar_nerfstudio.method_configs as m\n"
         "print(m.scalar_nerf.config.machine.device_type, m.scalar_nerf.config.mixed_precision)\n"
     )
-    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, check=False)
     assert result.returncode == 0, result.stderr[-3000:]
     assert result.stdout.split()[-2:] == ["auto", "True"]
     print(result.stderr[-3000:])  # shown with -rP: which dependency asked, where one did

@@ -6,12 +6,12 @@ from __future__ import annotations
 
 import pytest
 import torch
+from conftest import small_scalar_model
 from nerfstudio.cameras.cameras import Cameras
 
 from scalar_nerfstudio.config_checks import OptionError, check_options
 from scalar_nerfstudio.device_sizes import RENDER_RAYS_PER_CHUNK, render_rays_per_chunk
 from scalar_nerfstudio.method_configs import scalar_nerf
-from conftest import small_scalar_model
 
 
 def test_the_render_chunk_follows_the_device_unless_set() -> None:

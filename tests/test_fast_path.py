@@ -9,9 +9,9 @@ import copy
 
 import pytest
 import torch
+from conftest import SMALL_FIELD, ray_bundle, small_scalar_model
 from nerfstudio.cameras.rays import RayBundle
 
-from conftest import SMALL_FIELD, ray_bundle, small_scalar_model
 from scalar_nerfstudio.fields import scalar_field
 from scalar_nerfstudio.fields.scalar_field import ScalarField, ScalarFieldConfig
 from scalar_nerfstudio.models.scalar_model import ScalarModel

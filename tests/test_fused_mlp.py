@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import pytest
 import torch
+from conftest import SMALL_FIELD
 from torch import Tensor, nn
 
-from conftest import SMALL_FIELD
 from scalar_nerfstudio.fields import scalar_field
 from scalar_nerfstudio.fields.fused_mlp import fused_mlp, fused_mlp_available, linear_layers
 from scalar_nerfstudio.fields.scalar_field import ScalarField, ScalarFieldConfig

@@ -11,9 +11,9 @@ from __future__ import annotations
 
 import pytest
 import torch
+from conftest import SMALL_FIELD
 from torch import Tensor, nn
 
-from conftest import SMALL_FIELD
 from scalar_nerfstudio.fields import scalar_field
 from scalar_nerfstudio.fields.decoder_kernels import choose_cpu_decoder_kernel
 from scalar_nerfstudio.fields.fused_mlp import fused_mlp_available

@@ -479,7 +479,7 @@ def test_the_fusion_package_exports_every_name_and_needs_torch_alone() -> None:
     import ast
     import pathlib
 
-    import scalar_nerfstudio.fusion as fusion
+    from scalar_nerfstudio import fusion
 
     assert all(hasattr(fusion, name) for name in fusion.__all__)
     for path in pathlib.Path(fusion.__file__).parent.glob("*.py"):

@@ -217,7 +217,7 @@ def test_dense_and_hashed_level_sizes() -> None:
     enc = HashGridEncoding(num_levels=16, features_per_level=2, log2_hashmap_size=19)
     hashmap_size = 2**19
     assert enc.resolutions[0] == 16 and enc.resolutions[-1] == 2048
-    counts = [int(enc.level_offsets[l + 1] - enc.level_offsets[l]) for l in range(enc.num_levels)]
+    counts = [int(enc.level_offsets[level + 1] - enc.level_offsets[level]) for level in range(enc.num_levels)]
     for res, count in zip(enc.resolutions, counts):
         if (res + 1) ** 3 <= hashmap_size:
             assert count == (res + 1) ** 3
@@ -235,7 +235,7 @@ def test_resolutions_are_geometric() -> None:
     assert grid_resolutions(4, 8, 64) == [8, 16, 32, 64]
     assert grid_resolutions(16, 16, 4096)[-1] == 4096  # not 4095 from float round-off
     growth = math.exp((math.log(2048) - math.log(16)) / 15)
-    assert grid_resolutions(16, 16, 2048) == [math.floor(16 * growth**l + 1e-6) for l in range(16)]
+    assert grid_resolutions(16, 16, 2048) == [math.floor(16 * growth**level + 1e-6) for level in range(16)]
 
 
 def test_module_interface() -> None:

@@ -10,8 +10,8 @@ from unittest import mock
 import numpy as np
 import pytest
 import torch
-
 from conftest import tiny_trainer
+
 from scalar_nerfstudio.engine import allocator, memory
 from scalar_nerfstudio.engine.memory import HeapRelease, release_freed_memory, resident_mib
 

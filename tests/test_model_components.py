@@ -8,12 +8,18 @@ from typing import List
 
 import pytest
 import torch
-
 from conftest import ray_bundle, small_scalar_model
+
 from scalar_nerfstudio.engine.schedulers import hold_then_restart_factor, warmup_exponential_decay_factor
 from scalar_nerfstudio.fields.scalar_field import contract, contract_to_unit_cube
 from scalar_nerfstudio.model_components.rendering import render_depth, render_weights
-from scalar_nerfstudio.model_components.sampling import OccupancyGrid, lin_disp_spacing, lin_disp_spacing_inverse, sample_intervals, sphere_interval
+from scalar_nerfstudio.model_components.sampling import (
+    OccupancyGrid,
+    lin_disp_spacing,
+    lin_disp_spacing_inverse,
+    sample_intervals,
+    sphere_interval,
+)
 from scalar_nerfstudio.model_components.visibility import VisibilitySampler
 from scalar_nerfstudio.models.scalar_model import ScalarModel
 

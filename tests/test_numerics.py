@@ -7,10 +7,9 @@ import warnings
 
 import pytest
 import torch
-from hypothesis import given, settings
-from hypothesis import strategies as st
-
 from conftest import ray_bundle, small_scalar_model
+from hypothesis import given, settings, strategies as st
+
 from scalar_nerfstudio.encodings.hash_grid import HashGridEncoding
 from scalar_nerfstudio.fields.scalar_field import contract, contract_to_unit_cube
 from scalar_nerfstudio.model_components.rendering import render_weights

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import pytest
-
 from prerequisites import apply_needs_markers, need, needs
 
 

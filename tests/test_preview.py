@@ -9,9 +9,9 @@ from typing import Dict, List
 import numpy as np
 import pytest
 import torch
+from nerfstudio.cameras.cameras import Cameras, CameraType
 from PIL import Image
 
-from nerfstudio.cameras.cameras import Cameras, CameraType
 from scalar_nerfstudio.engine.preview import PREVIEW_DIR, PREVIEW_NAME, preview_scale, write_preview
 
 

@@ -16,10 +16,18 @@ from typing import Dict, Tuple
 import numpy as np
 import pytest
 from PIL import Image
-
 from prerequisites import has_module, need, requires_pycolmap
-from process_capture import (FOCAL_PX, HEIGHT, WIDTH, capture_exif, pose_errors, render_capture, run_process_data,
-                             scene_poses)
+from process_capture import (
+    FOCAL_PX,
+    HEIGHT,
+    WIDTH,
+    capture_exif,
+    pose_errors,
+    render_capture,
+    run_process_data,
+    scene_poses,
+)
+
 from scalar_nerfstudio.process import geo
 from scalar_nerfstudio.process.errors import ProcessDataError
 from scalar_nerfstudio.process.export_frame import read_transform

@@ -14,10 +14,20 @@ from typing import Dict, Tuple
 import numpy as np
 import pytest
 from PIL import Image
-
 from prerequisites import has_module, need, requires_pycolmap
-from process_capture import (FOCAL_PX, GPS_ORIGIN, HEIGHT, NUM_VIEWS, WIDTH, capture_exif, pose_errors,
-                             render_capture, run_process_data, scene_poses)
+from process_capture import (
+    FOCAL_PX,
+    GPS_ORIGIN,
+    HEIGHT,
+    NUM_VIEWS,
+    WIDTH,
+    capture_exif,
+    pose_errors,
+    render_capture,
+    run_process_data,
+    scene_poses,
+)
+
 from scalar_nerfstudio.process import geo
 
 needs_pycolmap = requires_pycolmap

@@ -13,8 +13,8 @@ from typing import Callable, TypeVar
 
 import pytest
 import torch
-
 from conftest import ray_bundle, small_scalar_model
+
 from scalar_nerfstudio.encodings import _cpp
 from scalar_nerfstudio.fields.scalar_field import contract_rays_to_unit_cube
 from scalar_nerfstudio.model_components.sampling import OccupancyGrid

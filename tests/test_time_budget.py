@@ -9,11 +9,11 @@ from pathlib import Path
 from typing import Dict, List
 
 import pytest
+from conftest import tiny_trainer
 
 from scalar_nerfstudio.blocks.plan import load_plan
 from scalar_nerfstudio.engine.pace import TrainingClock
 from scalar_nerfstudio.runs import latest_checkpoint_step, load_run_config
-from conftest import tiny_trainer
 
 #: Simulated seconds of one step: a block's cost more than the global model's (as measured on the towns), and
 #: blocks differ (on Caliterra block 0's first steps ran at 8.0 steps/s, the others at 5.6-7.5).

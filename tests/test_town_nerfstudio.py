@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from tiny_town import TINY, write_tiny_town
 
 from scalar_nerfstudio.scenes.town import (
     DEPTH_PNG_MAX_M,
@@ -22,8 +23,6 @@ from scalar_nerfstudio.scenes.town import (
     render_town_rays,
     town_camera_poses,
 )
-
-from tiny_town import TINY, write_tiny_town
 
 
 @pytest.fixture(scope="module")
@@ -222,8 +221,8 @@ def test_a_new_run_is_bounded_by_the_scenes_depth_and_records_it(scene_name: str
     later load renders as trained; a scene without depth, or --pipeline.scene-radius-from-depth False,
     leaves rays unbounded."""
     import yaml
-
     from conftest import tiny_trainer
+
     from scalar_nerfstudio.blocks.plan import SceneBound, load_plan
     from scalar_nerfstudio.data.depth import scene_radius_from_depth
 
@@ -260,9 +259,9 @@ def test_a_trained_runs_config_is_as_asked_and_its_loads_keep_the_derived_values
     (nerfstudio's eval_setup) still bounds every model by the radius the run fitted to its depth images."""
     import copy
 
+    from conftest import tiny_trainer
     from nerfstudio.utils.eval_utils import eval_setup
 
-    from conftest import tiny_trainer
     from scalar_nerfstudio.runs import load_run_config
 
     asked: list = []

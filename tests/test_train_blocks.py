@@ -19,12 +19,11 @@ import psutil
 import pytest
 import torch
 import yaml
-
 from conftest import TINY, ns_eval, ns_train_command, run_dirs, trained_block_tensors
 from prerequisites import has_module, need
 from quality import FUSION_TOLERANCE_DB, eval_renders, load_pipeline, working_directory
+
 from scalar_nerfstudio.blocks.split import save_blocks_json, split_cameras
-from scalar_nerfstudio.runs import latest_checkpoint_step
 from scalar_nerfstudio.distributed import TrainBlocksError, scheduling
 from scalar_nerfstudio.distributed.executors import LocalExecutor, local_gpu_slots, thread_env
 from scalar_nerfstudio.distributed.run_folders import DONE_MARKER, GlobalRun, prepare_blocks, write_done
@@ -35,6 +34,7 @@ from scalar_nerfstudio.distributed.scheduling import (
     default_local_gpus_per_block,
     start_executor,
 )
+from scalar_nerfstudio.runs import latest_checkpoint_step
 from scalar_nerfstudio.scripts import train_blocks
 from scalar_nerfstudio.scripts.train_blocks import main
 
@@ -200,7 +200,7 @@ def global_run(scene: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     scene's parent folder: every command on it runs from there (``cwd=global_run_cwd``)."""
     output_dir = tmp_path_factory.mktemp("global_only")
     result = subprocess.run(ns_train_command(Path(scene.name), output_dir, *TINY, "--pipeline.train-blocks", "False"),
-                            capture_output=True, text=True, timeout=900, cwd=scene.parent)
+                            capture_output=True, text=True, timeout=900, cwd=scene.parent, check=False)
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     (run,) = run_dirs(output_dir)
     return run
@@ -291,7 +291,7 @@ def test_ray_cluster_of_two_nodes_retries_a_killed_block_on_the_other_node(globa
       on the surviving one.
     """
     need("ray", has_module("ray"), provided_by="the test extra installs it: pip install -e '.[test]'")
-    import ray.cluster_utils as cluster_utils
+    from ray import cluster_utils
     out = tmp_path / "blocks"
     log_path = tmp_path / "command.log"
     started = time.time()
@@ -320,7 +320,7 @@ def test_ray_cluster_of_two_nodes_retries_a_killed_block_on_the_other_node(globa
             assert lost is not None, "block 1's first attempt was never seen running"
             process.wait(timeout=600)
         # the same command again skips both blocks (no Ray task, no training) and reuses the assembled run
-        rerun = subprocess.run(command, capture_output=True, text=True, timeout=300, cwd=global_run_cwd)
+        rerun = subprocess.run(command, capture_output=True, text=True, timeout=300, cwd=global_run_cwd, check=False)
     finally:
         if process is not None and process.poll() is None:
             process.kill()
@@ -361,13 +361,13 @@ def test_local_executor_reports_failures_then_trains_and_fuses(global_run: Path,
     out = tmp_path / "blocks"
     base = ["scalar-nerf-train-blocks", str(global_run), "--blocks", "0", "--num-cpus", "2", "--cpus-per-block", "2",
             "--block-steps", str(BLOCK_STEPS), "--output-dir", str(out), "--max-retries", "1"]
-    broken = subprocess.run([*base, "--", "--no-such-option", "1"], capture_output=True, text=True, timeout=600, cwd=global_run_cwd)
+    broken = subprocess.run([*base, "--", "--no-such-option", "1"], capture_output=True, text=True, timeout=600, cwd=global_run_cwd, check=False)
     assert broken.returncode == 1
     assert "block(s) 0 failed after 2 attempt(s)" in broken.stderr
     assert sorted(p.name for p in (out / "block0").iterdir()) == ["failed-attempt-1", "failed-attempt-2"]
     assert not run_dirs(out / "assembled")
 
-    result = subprocess.run(base, capture_output=True, text=True, timeout=600, cwd=global_run_cwd)
+    result = subprocess.run(base, capture_output=True, text=True, timeout=600, cwd=global_run_cwd, check=False)
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     run = _done_run(out, 0)
     assert "/block0/attempt-3/" in str(run)

@@ -6,9 +6,8 @@ from pathlib import Path
 
 import pytest
 import yaml
-from nerfstudio.utils.eval_utils import eval_setup
-
 from conftest import TRAIN_STEPS
+from nerfstudio.utils.eval_utils import eval_setup
 from prerequisites import requires_castle
 from quality import mean_image_psnr
 

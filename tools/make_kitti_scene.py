@@ -37,7 +37,7 @@ DOWNSCALES = (2, 4, 8)
 
 def _git_files(repo: Path, sequence: int) -> Dict[str, bytes]:
     """Relative path -> bytes of the clip's files, read from a clone or a bare copy of the repository."""
-    git_dir = subprocess.run(["git", "-C", str(repo), "rev-parse", "--absolute-git-dir"], capture_output=True, text=True)
+    git_dir = subprocess.run(["git", "-C", str(repo), "rev-parse", "--absolute-git-dir"], capture_output=True, text=True, check=False)
     if git_dir.returncode != 0:
         sys.exit(f"{repo}: not a git repository")
     git = ["git", "--git-dir", git_dir.stdout.strip()]
@@ -49,7 +49,7 @@ def _git_files(repo: Path, sequence: int) -> Dict[str, bytes]:
     for line in listing:
         meta, path = line.split("\t", 1)
         blob = meta.split()[2]
-        data = subprocess.run([*git, "cat-file", "blob", blob], capture_output=True)
+        data = subprocess.run([*git, "cat-file", "blob", blob], capture_output=True, check=False)
         if data.returncode != 0:
             sys.exit(f"{repo}: the blob of {path} is missing (a partial copy?)")
         files[path[len(prefix):]] = data.stdout

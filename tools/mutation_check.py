@@ -73,10 +73,10 @@ class RestoreError(MutationError):
 
 def uncommitted(path: str) -> Optional[str]:
     """Why ``path`` may not be mutated (not tracked, or changed against HEAD); None when it is committed as is."""
-    tracked = subprocess.run(["git", "ls-files", "--error-unmatch", "--", path], cwd=ROOT, capture_output=True)
+    tracked = subprocess.run(["git", "ls-files", "--error-unmatch", "--", path], cwd=ROOT, capture_output=True, check=False)
     if tracked.returncode != 0:
         return f"{path} is not tracked by git"
-    if subprocess.run(["git", "diff", "--quiet", "HEAD", "--", path], cwd=ROOT).returncode != 0:
+    if subprocess.run(["git", "diff", "--quiet", "HEAD", "--", path], cwd=ROOT, check=False).returncode != 0:
         return f"{path} has uncommitted changes: commit or stash them first"
     return None
 

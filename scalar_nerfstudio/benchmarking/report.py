@@ -17,7 +17,13 @@ from typing import Any, Dict, List, Optional, Tuple
 
 from scalar_nerfstudio.atomic_io import atomic_write_text
 from scalar_nerfstudio.benchmarking.variants import (
-    DECAY_SUFFIX, ONE_MODEL_SCHEDULES, ONE_MODEL_VARIANTS, WALL_CLOCK_SUFFIX, BenchmarkConfig, canonical_variant, parallel_block_steps,
+    DECAY_SUFFIX,
+    ONE_MODEL_SCHEDULES,
+    ONE_MODEL_VARIANTS,
+    WALL_CLOCK_SUFFIX,
+    BenchmarkConfig,
+    canonical_variant,
+    parallel_block_steps,
 )
 
 __all__ = [

@@ -32,7 +32,7 @@ from scalar_nerfstudio.fusion import parse_fusion_mode
 
 def _disable_lpips() -> None:
     """nerfacto builds LPIPS, which downloads AlexNet weights: offline that dies, so stub it out."""
-    import torchmetrics.image.lpip as lpip
+    from torchmetrics.image import lpip
 
     class NoLPIPS(torch.nn.Module):
         def __init__(self, *args, **kwargs) -> None:

@@ -17,8 +17,16 @@ from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
 
 from scalar_nerfstudio.benchmarking.variants import (
-    BenchmarkConfig, Variant, blocks_wall_clock_s, check_options, former_variant_name, nearest_to_wall_clock, plan, use_quick_budgets,
-    wall_clock_retry, wall_clock_variants,
+    BenchmarkConfig,
+    Variant,
+    blocks_wall_clock_s,
+    check_options,
+    former_variant_name,
+    nearest_to_wall_clock,
+    plan,
+    use_quick_budgets,
+    wall_clock_retry,
+    wall_clock_variants,
 )
 
 __all__ = [

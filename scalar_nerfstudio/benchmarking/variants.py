@@ -269,7 +269,8 @@ def auto_k(config: BenchmarkConfig, log2_t: int) -> int:
     """The automatic K scalar-nerf would choose on this scene (same rule as the pipeline)."""
     from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 
-    from scalar_nerfstudio.pipeline import ScalarPipelineConfig, parsed_layout_scale
+    from scalar_nerfstudio.data.datamanager import parsed_layout_scale
+    from scalar_nerfstudio.pipeline import ScalarPipelineConfig
 
     parsed = NerfstudioDataParserConfig(
         data=config.data, downscale_factor=config.downscale, eval_mode="interval", eval_interval=8

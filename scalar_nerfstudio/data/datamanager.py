@@ -26,13 +26,14 @@ from typing import Dict, Iterator, List, NamedTuple, Optional, Tuple, Type
 import numpy as np
 import numpy.typing as npt
 import torch
-from PIL import Image
-from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
 from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManager, VanillaDataManagerConfig
+from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
 from nerfstudio.data.datasets.base_dataset import InputDataset
 from nerfstudio.utils.rich_utils import CONSOLE
+from PIL import Image
 from torch import Tensor
 
+from scalar_nerfstudio.blocks.capacity import LayoutScale, layout_scale
 from scalar_nerfstudio.data.depth import depth_scale, missing_depth_files, ray_depth_image
 from scalar_nerfstudio.data.validation import to_rgb_array
 from scalar_nerfstudio.seam.data import dataparser_outputs, loader_options
@@ -104,6 +105,12 @@ def camera_layout(outputs: DataparserOutputs) -> CameraLayout:
         focal_px=cameras.fx.reshape(-1).double().numpy(),
         image_pixels=(cameras.width * cameras.height).reshape(-1).tolist(),
     )
+
+
+def parsed_layout_scale(outputs: DataparserOutputs) -> LayoutScale:
+    """:class:`LayoutScale` of the parsed training cameras."""
+    cameras = camera_layout(outputs)
+    return layout_scale(cameras.centres, cameras.directions, cameras.focal_px)
 
 
 class ScalarInputDataset(InputDataset):

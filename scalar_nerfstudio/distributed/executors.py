@@ -106,7 +106,7 @@ def run_attempt(job: AttemptJob) -> AttemptResult:
         log.flush()
         cwd = job.cwd if job.cwd and os.path.isdir(job.cwd) else folder
         process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, cwd=cwd,
-                                   env={**os.environ, **job.env}, preexec_fn=_die_with_parent)
+                                   env={**os.environ, **job.env}, preexec_fn=_die_with_parent)  # noqa: PLW1509 (prctl only, before exec)
         returncode = process.wait()
     return AttemptResult(returncode, time.time() - start, host=host, node=node)
 

@@ -1,7 +1,9 @@
 """Encodings: the multi-resolution hash grid (C++/OpenMP on CPU, a CUDA kernel on CUDA, vectorised torch elsewhere)."""
 
-from scalar_nerfstudio.encodings._cpp import extension_available as cpp_extension_available
-from scalar_nerfstudio.encodings._cpp import extension_error as cpp_extension_error
+from scalar_nerfstudio.encodings._cpp import (
+    extension_available as cpp_extension_available,
+    extension_error as cpp_extension_error,
+)
 from scalar_nerfstudio.encodings.hash_grid import (
     GridLayout,
     HashGridEncoding,

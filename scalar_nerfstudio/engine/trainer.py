@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Literal, Optional, Set, Tuple, Type
+from typing import Any, Callable, Dict, List, Literal, Optional, Type
 
 import torch
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
@@ -14,19 +14,25 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from torch.optim import lr_scheduler
 
 from scalar_nerfstudio.atomic_io import atomic_torch_save
-from scalar_nerfstudio.blocks.length import TrainingLength, blocks_from_remaining_time, format_duration, length_from_budget
+from scalar_nerfstudio.blocks.length import TrainingLength
 from scalar_nerfstudio.blocks.plan import save_plan
-from scalar_nerfstudio.config_checks import OptionError, check_block_counts, check_block_plan, check_options, check_output_dir
+from scalar_nerfstudio.config_checks import (
+    OptionError,
+    check_block_counts,
+    check_block_plan,
+    check_options,
+    check_output_dir,
+)
 from scalar_nerfstudio.data.validation import SceneError, scan_scene
-from scalar_nerfstudio.engine.contract import Phase, PhasedPipeline
+from scalar_nerfstudio.engine.budget import ClockFollower
+from scalar_nerfstudio.engine.contract import PhasedPipeline
 from scalar_nerfstudio.engine.device import resolve_device_type
-from scalar_nerfstudio.engine.process_settings import apply_process_settings
+from scalar_nerfstudio.engine.pace import TrainingClock
 from scalar_nerfstudio.engine.preview import write_preview
+from scalar_nerfstudio.engine.process_settings import apply_process_settings
 from scalar_nerfstudio.engine.report import format_report, scene_model_report, write_report
-from scalar_nerfstudio.engine.pace import BLOCK_CALIBRATION_STEPS, REPLAN_AT, TrainingClock, calibration_start, eta_line, pace_is_due
 from scalar_nerfstudio.engine.schedulers import WarmupExponentialDecaySchedulerConfig, retarget, warmup_steps_of
 from scalar_nerfstudio.engine.threads import ThreadGovernor
-from scalar_nerfstudio.pipeline_text import format_length
 from scalar_nerfstudio.runs import (
     RunError,
     blocks_json_path,
@@ -162,11 +168,8 @@ class ScalarTrainer(TrainerBase):
         """Training wall-clock and pace: the ETA lines and a time budget's plan (a benchmark pauses it while it evaluates)."""
         self._schedules: Dict[str, WarmupExponentialDecaySchedulerConfig] = {}
         self._total_steps = 0
-        self._pace_reported = False
-        self._replans_done: Set[float] = set()
-        self._block_replans_done: Set[Tuple[int, str]] = set()
-        self._blocks_began: Optional[Tuple[int, float]] = None
-        """(steps done, training seconds) when the global phase ended in this process: the blocks' pace is read since."""
+        self.clock_follower = ClockFollower(self.training_clock, replan=self._replan, total_steps=lambda: self._total_steps)
+        """The ETA lines, and a time budget's plan made again as the pace is known (engine/budget.py)."""
         self._trained_s_before: Optional[float] = None
 
     def setup(self, test_mode: Literal["test", "val", "inference"] = "val") -> None:
@@ -265,108 +268,6 @@ class ScalarTrainer(TrainerBase):
         """Steps of the run: ``--max-num-iterations`` when given, else every phase's."""
         return pipeline.total_steps if self._total_from_plan else self.config.max_num_iterations
 
-    # ------------------------------------------------ the clock: ETA, and a time budget's plan (engine/pace.py)
-    def _follow_the_clock(self, step: int) -> None:
-        """After ``step``: once the pace is known (:func:`.pace.pace_is_due`) print the ETA; with a time budget,
-        plan the steps then and again at :data:`.pace.REPLAN_AT` of the budget while the global phase trains
-        (its steps get dearer as the model fills in), and the blocks' steps from the time left when it ends;
-        at each phase's start, the ETA."""
-        pipeline = self.phased_pipeline
-        clock = self.training_clock
-        clock.mark(step + 1)
-        length = pipeline.length
-        budget = length.budget_s if length.source == "budget" else None
-        phase = pipeline.phase_at(step)
-        in_global = phase.block is None and step + 1 < phase.end_step
-        if not self._pace_reported and pace_is_due(clock.steps_seen, clock.elapsed_s(), budget):
-            self._pace_reported = True
-            first = step + 1 - clock.steps_seen + calibration_start(clock.steps_seen)
-            pace = clock.pace(since_steps=first)
-            if budget is not None and not length.measured and pace is not None:
-                self._replan_from_pace(step, budget, pace)
-            CONSOLE.print(f"step {step + 1}: {pace or 0.0:.2f} steps/s over steps {first}-{step + 1}; "
-                          f"{format_length(pipeline.length, pipeline.phases)}; {eta_line(self._total_steps - step - 1, pace)}")
-        elif budget is not None and length.measured and (in_global or phase.block is not None and phase.start_step == 0):
-            pace = clock.pace(last_steps=200)
-            spent = self._budget_spent_s(step + 1, pace or 0.0)
-            due = [share for share in REPLAN_AT if share not in self._replans_done and spent >= share * budget]
-            if due and pace is not None:
-                self._replans_done.update(due)
-                self._replan_from_pace(step, budget, pace)
-                CONSOLE.print(f"step {step + 1}: {pace:.2f} steps/s over the last steps, {due[-1]:.0%} of the budget spent; "
-                              f"{format_length(pipeline.length, pipeline.phases)}; {eta_line(self._total_steps - step - 1, pace)}")
-        phase = pipeline.phase_at(step)
-        if budget is not None and phase.block is not None and phase.start_step > 0:
-            self._plan_blocks_in(phase, step, budget)
-        if budget is not None and phase.block is None and step + 1 == phase.end_step and not pipeline.length.blocks_measured:
-            pace = clock.pace(last_steps=200) or pipeline.length.pace_steps_per_s or 0.0
-            remaining = budget - self._budget_spent_s(step + 1, pace)
-            self._replan(blocks_from_remaining_time(pipeline.length, pipeline.length_settings(),
-                                                    num_blocks_trained=pipeline.num_blocks_following, remaining_s=remaining,
-                                                    pace_steps_per_s=pace), started_through=step)
-            self._blocks_began = (step + 1, clock.elapsed_s())
-            CONSOLE.print(f"step {step + 1}: the global phase took {format_duration(clock.elapsed_s())}; "
-                          f"{format_duration(max(remaining, 0))} "
-                          f"of the budget left: {format_length(pipeline.length, pipeline.phases)}")
-        upcoming = pipeline.phase_at(step + 1)
-        if self._pace_reported and step + 1 == upcoming.start_step and step + 1 < self._total_steps:
-            CONSOLE.print(f"step {step + 1}: phase {upcoming.name} starts ({upcoming.num_steps} steps); the run has "
-                          f"{eta_line(self._total_steps - step - 1, clock.pace(last_steps=200))}")
-
-    def _plan_blocks_in(self, phase: Phase, step: int, budget: float) -> None:
-        """In a block phase of a budget run, after ``step``: plan its steps and those of the blocks after it again
-        from the time left, once it has trained :data:`.pace.BLOCK_CALIBRATION_STEPS` (or a third) of them, and on
-        one machine again at its half (blocks differ in cost: a plan at the first block's pace alone overran). The
-        rest of this block is costed at its own pace, the blocks after it at the pace of all blocks so far. On
-        K workers only the first block is planned again (each block stands for one worker's)."""
-        pipeline = self.phased_pipeline
-        settings = pipeline.length_settings()
-        blocks = [p for p in pipeline.phases if p.block is not None]
-        index = blocks.index(phase)
-        one_machine = settings.block_workers <= 1
-        if index > 0 and not one_machine:
-            return
-        done = step + 1 - phase.start_step
-        points = {"start": min(BLOCK_CALIBRATION_STEPS, max(phase.num_steps // 3, 1))}
-        if one_machine:
-            points["half"] = phase.num_steps // 2
-        due = [name for name, at in points.items() if done >= at and (index, name) not in self._block_replans_done]
-        if not due or phase.num_steps - done <= 1:
-            return
-        self._block_replans_done.update((index, name) for name in due)
-        clock = self.training_clock
-        pace = clock.pace(since_steps=phase.start_step + min(10, done // 2)) or 0.0
-        blocks_pace = pace
-        if self._blocks_began is not None and index > 0:
-            began_steps, began_s = self._blocks_began
-            spent_in_blocks = clock.elapsed_s() - began_s
-            blocks_pace = (step + 1 - began_steps) / spent_in_blocks if spent_in_blocks > 0 else pace
-        remaining = budget - self._budget_spent_s(step + 1, pace)
-        self._replan(blocks_from_remaining_time(
-            pipeline.length, settings, num_blocks_trained=pipeline.num_blocks_following, remaining_s=remaining, pace_steps_per_s=pace,
-            later_blocks_pace_steps_per_s=blocks_pace, current_block_steps_done=done,
-            finished_block_steps=[p.num_steps for p in blocks[:index]] if one_machine else ()), started_through=step)
-        CONSOLE.print(f"step {step + 1}: {pace:.2f} steps/s in {phase.name} ({blocks_pace:.2f} over the blocks so far); "
-                      f"{format_length(pipeline.length, pipeline.phases)}; {eta_line(self._total_steps - step - 1, pace)}")
-
-    def _replan_from_pace(self, step: int, budget: float, pace: float) -> None:
-        """Plan the steps so that those done after ``step`` plus those that fit the budget's time left at ``pace``
-        make the run (the phase that trains keeps at least the steps it has done)."""
-        pipeline = self.phased_pipeline
-        remaining = max(budget - self._budget_spent_s(step + 1, pace), 0.0)
-        effective = (step + 1 + remaining * pace) / budget  # steps per second of budget: those done and those that fit
-        length = length_from_budget(pipeline.length, pipeline.length_settings(), num_blocks_trained=pipeline.num_blocks_following,
-                                    pace_steps_per_s=effective, steps_done=step + 1)
-        self._replan(length, started_through=step)
-
-    def _budget_spent_s(self, steps_done: int, pace: float) -> float:
-        """Training seconds of the budget spent after ``steps_done`` steps: the clock's (a resumed run's earlier
-        training time is in its checkpoint), or, resumed from a checkpoint without it, its earlier steps at ``pace``."""
-        if self.training_clock.knows_earlier_time:
-            return self.training_clock.elapsed_s()
-        earlier = steps_done - self.training_clock.steps_seen
-        return self.training_clock.elapsed_s() + (earlier / pace if pace > 0 and earlier > 0 else 0.0)
-
     def _replan(self, length: TrainingLength, started_through: int) -> None:
         """Train for ``length`` from now on: the phases, the learning-rate schedules (a phase that has started
         keeps its warm-up), the run's total and its recorded plan follow it."""
@@ -384,7 +285,6 @@ class ScalarTrainer(TrainerBase):
         self._total_steps = self._planned_total(pipeline)
         set_progress_total(self._total_steps)
         self._record_plan(pipeline, again=True)
-    # ------------------------------------------------------------------------------------------------
 
     def _optimizer_template(self, group: str, template: str) -> str:
         """``template``, checked to be in ``optimizers``."""
@@ -398,7 +298,7 @@ class ScalarTrainer(TrainerBase):
         (``adapt_threads``)."""
         self.thread_governor.update()
         result = super().train_iteration(step)
-        self._follow_the_clock(step)
+        self.clock_follower.after_step(self.phased_pipeline, step)
         if step + 1 >= self._total_steps:
             self.stop_training = True  # a time budget's loop runs to its longest possible plan
         every = self.config.steps_per_preview

@@ -37,7 +37,13 @@ and float32-safe distances), ``selection`` (which blocks a ray may use), ``blend
 """
 
 from scalar_nerfstudio.fusion.blend import fuse_weighted, select_winner, weights_winner
-from scalar_nerfstudio.fusion.modes import FUSION_MODES, FusionMode, FusionModeError, ParsedFusionMode, parse_fusion_mode
+from scalar_nerfstudio.fusion.modes import (
+    FUSION_MODES,
+    FusionMode,
+    FusionModeError,
+    ParsedFusionMode,
+    parse_fusion_mode,
+)
 from scalar_nerfstudio.fusion.outputs import FUSED_KEYS, fuse_outputs
 from scalar_nerfstudio.fusion.rules import (
     fuse_global_guided,
@@ -48,7 +54,13 @@ from scalar_nerfstudio.fusion.rules import (
     score_weights,
     transparent_pixels,
 )
-from scalar_nerfstudio.fusion.selection import nearest_block, nearest_blocks, region_scores, select_blocks, surface_points
+from scalar_nerfstudio.fusion.selection import (
+    nearest_block,
+    nearest_blocks,
+    region_scores,
+    select_blocks,
+    surface_points,
+)
 
 __all__ = [
     "FUSED_KEYS",

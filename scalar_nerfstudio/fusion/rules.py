@@ -10,7 +10,13 @@ from torch import Tensor
 
 from scalar_nerfstudio.fusion.blend import fuse_weighted, select_winner
 from scalar_nerfstudio.fusion.modes import ParsedFusionMode, parse_fusion_mode
-from scalar_nerfstudio.fusion.numerics import check_block_values, check_gamma, distances, inverse_distance_shares, usable_mask
+from scalar_nerfstudio.fusion.numerics import (
+    check_block_values,
+    check_gamma,
+    distances,
+    inverse_distance_shares,
+    usable_mask,
+)
 from scalar_nerfstudio.fusion.selection import nearest_block, nearest_of, select_blocks
 
 

@@ -15,7 +15,14 @@ import torch
 from torch import Tensor
 
 from scalar_nerfstudio.blocks.observation import observed_at
-from scalar_nerfstudio.fusion import ParsedFusionMode, nearest_block, nearest_blocks, region_scores, select_blocks, surface_points
+from scalar_nerfstudio.fusion import (
+    ParsedFusionMode,
+    nearest_block,
+    nearest_blocks,
+    region_scores,
+    select_blocks,
+    surface_points,
+)
 
 
 @dataclass(frozen=True, eq=False)  # eq=False: == on tensors is elementwise, so two records compare by identity

@@ -26,7 +26,12 @@ from scalar_nerfstudio.fusion import (
     transparent_pixels,
     weights_winner,
 )
-from scalar_nerfstudio.model_components.rendering import facing_normals, normals_from_unit_interval, normals_to_unit_interval, safe_normalise
+from scalar_nerfstudio.model_components.rendering import (
+    facing_normals,
+    normals_from_unit_interval,
+    normals_to_unit_interval,
+    safe_normalise,
+)
 from scalar_nerfstudio.models.block_selection import BlockRegions, select_rays
 from scalar_nerfstudio.models.scalar_model import ScalarModel
 

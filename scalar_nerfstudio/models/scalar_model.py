@@ -30,7 +30,14 @@ from nerfstudio.models.base_model import Model, ModelConfig
 from torch import Tensor
 from torch.nn import Parameter
 
-from scalar_nerfstudio.fields.scalar_field import ScalarField, ScalarFieldConfig, contract_rays_to_unit_cube, contract_to_unit_cube, to_region_frame, unit_cube_to_world
+from scalar_nerfstudio.fields.scalar_field import (
+    ScalarField,
+    ScalarFieldConfig,
+    contract_rays_to_unit_cube,
+    contract_to_unit_cube,
+    to_region_frame,
+    unit_cube_to_world,
+)
 from scalar_nerfstudio.metrics import ImageMetrics, depth_metrics, psnr
 from scalar_nerfstudio.model_components.colliders import BoundedNearFarCollider
 from scalar_nerfstudio.model_components.ray_samples import RaySamples, neutralise_bad_rays

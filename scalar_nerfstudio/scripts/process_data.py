@@ -100,7 +100,7 @@ def _done(progress: Progress, description: str) -> None:
 
 def _stage(progress: Progress, description: str, total: Optional[int]):
     task = progress.add_task(description, total=total)
-    return task, (lambda n=1: progress.advance(task, n)), (lambda: progress.refresh())
+    return task, (lambda n=1: progress.advance(task, n)), progress.refresh
 
 
 def run(args: argparse.Namespace, err: Console) -> int:

@@ -101,7 +101,9 @@ def check_args(args: TrainBlocksArgs, extra: List[str]) -> None:
 def train_blocks(args: TrainBlocksArgs, extra: List[str]) -> int:
     """The command; returns its exit status."""
     check_args(args, extra)
-    from scalar_nerfstudio.method_configs import scalar_nerf_block  # the whole method: imported once the options are read
+    from scalar_nerfstudio.method_configs import (
+        scalar_nerf_block,  # the whole method: imported once the options are read
+    )
 
     global_run, blocks = check_global_run(args.global_run, args.blocks, block_method=scalar_nerf_block.config)
     global_dir = global_run.run_dir = global_run.run_dir.resolve()

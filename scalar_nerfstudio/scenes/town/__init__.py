@@ -14,11 +14,17 @@ Modules, each importing only those above it: :mod:`.config`, :mod:`.layout`, :mo
 is their public API.
 """
 
+from scalar_nerfstudio.scenes.town.cameras import town_camera_poses, town_intrinsics
 from scalar_nerfstudio.scenes.town.config import DEPTH_PNG_MAX_M, DEPTH_PNG_UNIT_M, TownConfig, blocks_for_extent
-from scalar_nerfstudio.scenes.town.layout import Town, build_town, points_inside_buildings, points_on_streets, town_boxes
+from scalar_nerfstudio.scenes.town.layout import (
+    Town,
+    build_town,
+    points_inside_buildings,
+    points_on_streets,
+    town_boxes,
+)
 from scalar_nerfstudio.scenes.town.raycast import GROUND, SKY, TownHits, intersect_town
 from scalar_nerfstudio.scenes.town.render import render_town_image, render_town_rays
-from scalar_nerfstudio.scenes.town.cameras import town_camera_poses, town_intrinsics
 from scalar_nerfstudio.scenes.town.scene_folder import iter_frames, load_town, read_depth_png, write_town
 
 __all__ = [

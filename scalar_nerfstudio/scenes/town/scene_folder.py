@@ -29,7 +29,12 @@ from PIL import Image
 from scalar_nerfstudio.engine.allocator import keep_render_temporaries
 from scalar_nerfstudio.scenes.town.cameras import town_camera_poses, town_intrinsics
 from scalar_nerfstudio.scenes.town.config import (
-    DEPTH_PNG_MAX_M, DEPTH_PNG_UNIT_M, GENERATOR_ID, GENERATOR_VERSION, READABLE_VERSIONS, TownConfig,
+    DEPTH_PNG_MAX_M,
+    DEPTH_PNG_UNIT_M,
+    GENERATOR_ID,
+    GENERATOR_VERSION,
+    READABLE_VERSIONS,
+    TownConfig,
 )
 from scalar_nerfstudio.scenes.town.layout import STYLES, Town, build_town
 from scalar_nerfstudio.scenes.town.render import render_town_image
@@ -88,7 +93,14 @@ class _Progress:
         if not enabled:
             return
         try:
-            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+            from rich.progress import (
+                BarColumn,
+                MofNCompleteColumn,
+                Progress,
+                TextColumn,
+                TimeElapsedColumn,
+                TimeRemainingColumn,
+            )
 
             progress = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), TimeRemainingColumn())
             progress.start()
