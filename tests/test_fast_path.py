@@ -1,4 +1,5 @@
-"""The CPU speed levers of the field and the model: a bfloat16 decoder and opacity-based sample skipping.
+"""The CPU speed levers of the field and the model: a bfloat16 decoder, opacity-based sample skipping and
+front-to-back rendering that stops at surfaces.
 
 Both must leave what is rendered and learned as it was, up to the precision they trade away.
 """
@@ -14,6 +15,9 @@ from nerfstudio.cameras.rays import RayBundle
 
 from scalar_nerfstudio.fields import scalar_field
 from scalar_nerfstudio.fields.scalar_field import ScalarField, ScalarFieldConfig
+from scalar_nerfstudio.model_components import visibility as visibility_module
+from scalar_nerfstudio.model_components.sampling import OccupancyGrid
+from scalar_nerfstudio.model_components.visibility import VisibilitySampler
 from scalar_nerfstudio.models.scalar_model import ScalarModel
 
 
@@ -158,10 +162,8 @@ def test_sample_skipping_starts_with_the_grid_pruning_and_is_restored_from_a_che
 
 
 @pytest.mark.parametrize("opacity", [0.3, 3.0])
-def test_rendering_front_to_back_in_segments_gives_the_one_pass_image_with_fewer_evaluations(opacity: float, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_rendering_front_to_back_in_rounds_gives_the_one_pass_image_with_fewer_evaluations(opacity: float, monkeypatch: pytest.MonkeyPatch) -> None:
     """Rays that turned opaque stop being evaluated, and the image is the one-pass image."""
-    import scalar_nerfstudio.model_components.visibility as visibility_module
-
     torch.manual_seed(0)
     model = small_scalar_model()
     with torch.no_grad():
@@ -179,14 +181,15 @@ def test_rendering_front_to_back_in_segments_gives_the_one_pass_image_with_fewer
 
     monkeypatch.setattr(model.field, "density_at_unit", counting)
     outputs = {}
-    for segments in (1, 4, 64):
-        monkeypatch.setattr(visibility_module, "RENDER_SEGMENTS", segments)
+    groups = (64, 4, 1)  # 64: every candidate of a ray in one round (the samples per ray), as one pass
+    for group in groups:
+        monkeypatch.setattr(visibility_module, "RENDER_GROUP", group)
         evaluated.append(0)
         with torch.no_grad():
-            outputs[segments] = model.render_rays(rays, normals=False)
-    for segments in (4, 64):
+            outputs[group] = model.render_rays(rays, normals=False)
+    for group in groups[1:]:
         for key in ("rgb", "depth", "accumulation", "samples_per_ray"):
-            assert torch.allclose(outputs[segments][key], outputs[1][key], atol=1e-6), (segments, key)
+            assert torch.allclose(outputs[group][key], outputs[64][key], atol=1e-6), (group, key)
     assert evaluated[2] <= evaluated[1] <= evaluated[0], evaluated
     if opacity > 1.0:  # opaque surfaces: the samples behind them are skipped
         assert evaluated[1] < 0.8 * evaluated[0], evaluated
@@ -244,8 +247,6 @@ def test_a_training_step_encodes_each_sample_once_with_the_gradients_of_encoding
         outputs["rgb"].square().sum().backward()
         return outputs, model.field.encoder.table.grad.clone(), model.field.decoder.density_mlp[0].weight.grad.clone()
 
-    import scalar_nerfstudio.model_components.visibility as visibility_module
-
     monkeypatch.setattr(visibility_module, "DENSITY_CHUNK", 500)  # the no-grad pass in several chunks
     monkeypatch.setattr(encoder, "forward", counting_forward)
     outputs, table_grad, decoder_grad = gradients()
@@ -259,3 +260,43 @@ def test_a_training_step_encodes_each_sample_once_with_the_gradients_of_encoding
     assert table_grad.abs().sum() > 0
     torch.testing.assert_close(table_grad, table_grad_again, atol=1e-7, rtol=0)
     torch.testing.assert_close(decoder_grad, decoder_grad_again, atol=1e-7, rtol=0)
+
+
+class _WallField:
+    """A field stub: an opaque wall at unit-cube x >= 0.6, empty before it; counts its evaluations."""
+
+    def __init__(self) -> None:
+        self.evaluated = 0
+
+    def encoder(self, unit_positions: torch.Tensor) -> torch.Tensor:
+        return unit_positions * 2.0
+
+    def density_at_unit(self, unit_positions: torch.Tensor, encoding=None):
+        self.evaluated += unit_positions.shape[0]
+        density = torch.where(unit_positions[:, 0] >= 0.6, 1e4, 0.0)
+        return density, unit_positions[:, :2]
+
+
+def test_the_visibility_sampler_keeps_the_samples_up_to_the_first_opaque_one(monkeypatch: pytest.MonkeyPatch) -> None:
+    num_rays, num_samples = 3, 10
+    xs = torch.linspace(0.05, 0.95, num_samples)
+    unit_positions = torch.stack([xs, torch.full_like(xs, 0.5), torch.full_like(xs, 0.5)], dim=-1).repeat(num_rays, 1)  # [R*S, 3]
+    deltas = torch.full((num_rays, num_samples), 0.1)
+    grid = OccupancyGrid(resolution=8)  # fresh: every cell occupied, not pruning
+    field = _WallField()
+    sampler = VisibilitySampler(grid, field, transmittance_threshold=1e-3, alpha_threshold=0.01, grid_alpha_skip=True)
+    assert not sampler.skips_transparent()
+    first_wall = int((xs >= 0.6).nonzero()[0])
+    expected = [r * num_samples + s for r in range(num_rays) for s in range(first_wall + 1)]  # empty space, then the wall's first sample
+    ids, encoding = sampler.visible(unit_positions, deltas)
+    assert ids.tolist() == expected and torch.equal(encoding, unit_positions[ids] * 2.0)
+    field.evaluated = 0
+    ids_rendered, density, geo = sampler.visible_with_features(unit_positions, deltas)
+    assert sorted(ids_rendered.tolist()) == expected and density.shape == (len(expected),) and geo.shape == (len(expected), 2)
+    assert field.evaluated <= len(expected) + num_rays * (visibility_module.RENDER_GROUP - 1)  # at most a round's rest behind the wall
+    monkeypatch.setattr(visibility_module, "RENDER_GROUP", 1)  # one candidate per round: nothing behind the wall is evaluated
+    field.evaluated = 0
+    assert sorted(sampler.visible_with_features(unit_positions, deltas)[0].tolist()) == expected and field.evaluated == len(expected)
+    every = VisibilitySampler(grid, field, transmittance_threshold=0.0, alpha_threshold=0.01, grid_alpha_skip=True)
+    ids, encoding = every.visible(unit_positions, deltas)
+    assert ids.numel() == num_rays * num_samples and encoding is None  # no occlusion test: every occupied sample

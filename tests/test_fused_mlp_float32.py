@@ -17,7 +17,7 @@ from torch import Tensor, nn
 from scalar_nerfstudio.fields import scalar_field
 from scalar_nerfstudio.fields.decoder_kernels import choose_cpu_decoder_kernel
 from scalar_nerfstudio.fields.fused_mlp import fused_mlp_available
-from scalar_nerfstudio.fields.fused_mlp_float32 import float32_mlp_isa, fused_mlp_float32
+from scalar_nerfstudio.fields.fused_mlp_float32 import float32_mlp_isa, fused_mlp_float32, mlp_float32_inference
 from scalar_nerfstudio.fields.scalar_field import ScalarFieldConfig
 
 OUTPUT_TOLERANCE = 1e-5
@@ -64,6 +64,7 @@ def test_forward_and_gradients_agree_with_torch_float32(isa: str, widths: tuple[
     expected = mlp(inputs)
     assert output.dtype == torch.float32 and output.shape == (num_rows, widths[-1])
     assert relative_error(output, expected) < OUTPUT_TOLERANCE
+    assert torch.equal(mlp_float32_inference(mlp, inputs.detach(), isa), output.detach())  # same tiles, no activations kept
 
     grad_out = torch.randn(output.shape, generator=generator)
     got = torch.autograd.grad(output, [inputs, *mlp.parameters()], grad_out)
@@ -185,7 +186,7 @@ def test_contradictory_settings_are_refused() -> None:
 
 
 @pytest.mark.skipif(float32_mlp_isa() != "avx2", reason="no AVX2 and FMA on this CPU")
-def test_the_field_with_the_avx2_kernel_forced_trains_in_float32_with_torch_s_results(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_the_field_with_the_avx2_kernel_forced_trains_and_renders_in_float32_with_torch_s_results(monkeypatch: pytest.MonkeyPatch) -> None:
     torch.manual_seed(0)
     forced = ScalarFieldConfig(**SMALL_FIELD, cpu_decoder_kernel="avx2").setup(num_images=3)
     torch.manual_seed(0)
@@ -213,9 +214,15 @@ def test_the_field_with_the_avx2_kernel_forced_trains_in_float32_with_torch_s_re
     assert grads_f.keys() == grads_l.keys() and any(name.startswith("encoder") for name in grads_f)
     for name in grads_f:
         assert relative_error(grads_f[name], grads_l[name]) < GRADIENT_TOLERANCE, name
-    with torch.no_grad():  # evaluation does not take the training kernels
-        forced.density_at_unit(points)
-    assert len(calls) == 2
+    inference: list[int] = []
+    real_inference = scalar_field.mlp_float32_inference
+    monkeypatch.setattr(scalar_field, "mlp_float32_inference", lambda *args: inference.append(1) or real_inference(*args))
+    with torch.no_grad():  # evaluation takes the inference kernels, with the training kernels' results
+        density_i, geo_i = forced.density_at_unit(points)
+        rgb_i = forced.colour(geo_i, directions, ray_ids, camera_indices=camera_indices)
+        layered.density_at_unit(points)
+    assert len(calls) == 2 and len(inference) == 2
+    assert torch.equal(density_i, density_f.detach()) and torch.equal(rgb_i, rgb_f.detach())
 
 
 @pytest.mark.skipif(not fused_mlp_available(), reason="no AVX512-BF16 on this CPU")

@@ -20,7 +20,6 @@ from scalar_nerfstudio.model_components.sampling import (
     sample_intervals,
     sphere_interval,
 )
-from scalar_nerfstudio.model_components.visibility import VisibilitySampler
 from scalar_nerfstudio.models.scalar_model import ScalarModel
 
 
@@ -459,40 +458,3 @@ def test_a_scene_radius_ends_rays_where_they_leave_it() -> None:
     assert all(torch.isfinite(value).all() for value in missing.values() if isinstance(value, torch.Tensor))
     with pytest.raises(ValueError, match="scene radius -1.0"):
         small_scalar_model(scene_radius=-1.0)
-
-
-class _WallField:
-    """A field stub: an opaque wall at unit-cube x >= 0.6, empty before it; counts its evaluations."""
-
-    def __init__(self) -> None:
-        self.evaluated = 0
-
-    def encoder(self, unit_positions: torch.Tensor) -> torch.Tensor:
-        return unit_positions * 2.0
-
-    def density_at_unit(self, unit_positions: torch.Tensor, encoding=None):
-        self.evaluated += unit_positions.shape[0]
-        density = torch.where(unit_positions[:, 0] >= 0.6, 1e4, 0.0)
-        return density, unit_positions[:, :2]
-
-
-def test_the_visibility_sampler_keeps_the_samples_up_to_the_first_opaque_one() -> None:
-    num_rays, num_samples = 3, 10
-    xs = torch.linspace(0.05, 0.95, num_samples)
-    unit_positions = torch.stack([xs, torch.full_like(xs, 0.5), torch.full_like(xs, 0.5)], dim=-1).repeat(num_rays, 1)  # [R*S, 3]
-    deltas = torch.full((num_rays, num_samples), 0.1)
-    grid = OccupancyGrid(resolution=8)  # fresh: every cell occupied, not pruning
-    field = _WallField()
-    sampler = VisibilitySampler(grid, field, transmittance_threshold=1e-3, alpha_threshold=0.01, grid_alpha_skip=True)
-    assert not sampler.skips_transparent()
-    first_wall = int((xs >= 0.6).nonzero()[0])
-    expected = [r * num_samples + s for r in range(num_rays) for s in range(first_wall + 1)]  # empty space, then the wall's first sample
-    ids, encoding = sampler.visible(unit_positions, deltas)
-    assert ids.tolist() == expected and torch.equal(encoding, unit_positions[ids] * 2.0)
-    field.evaluated = 0
-    ids_rendered, density, geo = sampler.visible_with_features(unit_positions, deltas)
-    assert sorted(ids_rendered.tolist()) == expected and density.shape == (len(expected),) and geo.shape == (len(expected), 2)
-    assert field.evaluated < num_rays * num_samples  # the segments behind the wall are never evaluated
-    every = VisibilitySampler(grid, field, transmittance_threshold=0.0, alpha_threshold=0.01, grid_alpha_skip=True)
-    ids, encoding = every.visible(unit_positions, deltas)
-    assert ids.numel() == num_rays * num_samples and encoding is None  # no occlusion test: every occupied sample

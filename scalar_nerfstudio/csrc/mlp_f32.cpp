@@ -2,7 +2,8 @@
 // backward in one pass over 64-row tiles each: issue 67's fused decoder for CPUs without
 // AVX512-BF16 (the bfloat16 one is csrc/mlp.cpp).
 //
-// Registered as torch ops `torch.ops.scalar_nerf_mlp_f32.forward`, `.backward` and `.isa`; the
+// Registered as torch ops `torch.ops.scalar_nerf_mlp_f32.forward`, `.backward`, `.infer` (no autograd:
+// the activations stay in per-thread tile buffers) and `.isa`; the
 // Python side is fields/fused_mlp_float32.py. The per-tile kernels (csrc/mlp_f32_kernels.h) are
 // compiled twice: with AVX2 + FMA (per-function target, chosen at run time where the CPU has both)
 // and with the compiler's baseline target (the "portable" fallback, also the only one off x86). The
@@ -92,18 +93,19 @@ std::string isa() { return cpu_has_avx2() ? "avx2" : "portable"; }
 struct Kernels {
   decltype(&portable::forward_tile) forward_tile;
   decltype(&portable::backward_tile) backward_tile;
+  decltype(&portable::infer_tile) infer_tile;
 };
 
 Kernels kernels_for(const std::string& name) {
-  if (name == "portable") return {&portable::forward_tile, &portable::backward_tile};
+  if (name == "portable") return {&portable::forward_tile, &portable::backward_tile, &portable::infer_tile};
 #ifdef SCALAR_NERF_MLP_F32_X86
   if (name == "avx2") {
     SCALAR_CHECK(cpu_has_avx2(), "scalar_nerf_mlp_f32: isa 'avx2' asked for, but this CPU lacks AVX2 or FMA");
-    return {&avx2::forward_tile, &avx2::backward_tile};
+    return {&avx2::forward_tile, &avx2::backward_tile, &avx2::infer_tile};
   }
 #endif
   SCALAR_CHECK(false, "scalar_nerf_mlp_f32: isa must be 'avx2' (x86 only) or 'portable', got '", name, "'");
-  return {nullptr, nullptr};
+  return {nullptr, nullptr, nullptr};
 }
 
 // Layers from the packed weights: [Kp, Op] (transposed == false, forward) or [Op, Kp] (backward).
@@ -133,12 +135,16 @@ std::vector<Layer> check_layers(const std::vector<at::Tensor>& weights, const st
   return layers;
 }
 
-// input [N, K0] float32 -> [output [N, out_dim], activations[0..L-1] [Npad, Kp_l]].
-std::vector<at::Tensor> forward(const at::Tensor& input, const std::vector<at::Tensor>& weights_t,
-                                const std::vector<at::Tensor>& biases, const std::vector<int64_t>& relu, int64_t out_dim,
-                                const std::string& isa_name) {
-  const Kernels kernels = kernels_for(isa_name);
-  const std::vector<Layer> layers = check_layers(weights_t, relu, false);
+// The forward's layers, weight and bias pointers, after checking the input and the packed parameters.
+struct ForwardArguments {
+  std::vector<Layer> layers;
+  std::vector<const float*> w32, b32;
+};
+
+ForwardArguments check_forward(const at::Tensor& input, const std::vector<at::Tensor>& weights_t,
+                               const std::vector<at::Tensor>& biases, const std::vector<int64_t>& relu, int64_t out_dim) {
+  ForwardArguments args{check_layers(weights_t, relu, false), {}, {}};
+  const std::vector<Layer>& layers = args.layers;
   SCALAR_CHECK(input.device().is_cpu() && input.is_contiguous() && input.dim() == 2 &&
                    input.scalar_type() == at::kFloat,
                "scalar_nerf_mlp_f32: input must be a contiguous CPU float32 [N, K] tensor, got ", input.sizes(), " ",
@@ -148,14 +154,25 @@ std::vector<at::Tensor> forward(const at::Tensor& input, const std::vector<at::T
   SCALAR_CHECK(out_dim >= 1 && out_dim <= layers.back().out_padded, "scalar_nerf_mlp_f32: out_dim ", out_dim,
                " out of range");
   SCALAR_CHECK(biases.size() == layers.size(), "scalar_nerf_mlp_f32: one bias per layer");
-  std::vector<const float*> w32, b32;
   for (size_t l = 0; l < layers.size(); ++l) {
     SCALAR_CHECK(biases[l].scalar_type() == at::kFloat && biases[l].is_contiguous() &&
                      biases[l].numel() == layers[l].out_padded,
                  "scalar_nerf_mlp_f32: bias ", l, " must be contiguous float32 with ", layers[l].out_padded, " values");
-    w32.push_back(weights_t[l].data_ptr<float>());
-    b32.push_back(biases[l].data_ptr<float>());
+    args.w32.push_back(weights_t[l].data_ptr<float>());
+    args.b32.push_back(biases[l].data_ptr<float>());
   }
+  return args;
+}
+
+// input [N, K0] float32 -> [output [N, out_dim], activations[0..L-1] [Npad, Kp_l]].
+std::vector<at::Tensor> forward(const at::Tensor& input, const std::vector<at::Tensor>& weights_t,
+                                const std::vector<at::Tensor>& biases, const std::vector<int64_t>& relu, int64_t out_dim,
+                                const std::string& isa_name) {
+  const Kernels kernels = kernels_for(isa_name);
+  const ForwardArguments args = check_forward(input, weights_t, biases, relu, out_dim);
+  const std::vector<Layer>& layers = args.layers;
+  const std::vector<const float*>& w32 = args.w32;
+  const std::vector<const float*>& b32 = args.b32;
   const int64_t n = input.size(0);
   const int64_t npad = round_up(std::max<int64_t>(n, 1), kTile);
   std::vector<at::Tensor> result;
@@ -178,6 +195,33 @@ std::vector<at::Tensor> forward(const at::Tensor& input, const std::vector<at::T
       kernels.forward_tile(in, in_dim, layers, w32, b32, acts, out, out_dim, n, t * kTile, scratch.data());
   }
   return result;
+}
+
+// input [N, K0] float32 -> output [N, out_dim], without autograd: no activation is kept.
+at::Tensor infer(const at::Tensor& input, const std::vector<at::Tensor>& weights_t, const std::vector<at::Tensor>& biases,
+                 const std::vector<int64_t>& relu, int64_t out_dim, const std::string& isa_name) {
+  const Kernels kernels = kernels_for(isa_name);
+  const ForwardArguments args = check_forward(input, weights_t, biases, relu, out_dim);
+  const std::vector<Layer>& layers = args.layers;
+  const int64_t n = input.size(0);
+  at::Tensor output = at::empty({n, out_dim}, input.options());
+  if (n == 0) return output;
+  const int64_t tiles = round_up(n, kTile) / kTile;
+  float* out = output.data_ptr<float>();
+  const float* in = input.data_ptr<float>();
+  const int64_t in_dim = input.size(1);
+#pragma omp parallel num_threads(threads_for(tiles))
+  {
+    std::vector<std::vector<float>> storage;
+    std::vector<float*> bufs;
+    for (const Layer& ly : layers) storage.emplace_back(kTile * ly.in_padded);
+    storage.emplace_back(kTile * layers.back().out_padded);
+    for (std::vector<float>& buf : storage) bufs.push_back(buf.data());
+#pragma omp for schedule(static)
+    for (int64_t t = 0; t < tiles; ++t)
+      kernels.infer_tile(in, in_dim, layers, args.w32, args.b32, bufs, out, out_dim, n, t * kTile);
+  }
+  return output;
 }
 
 // grad_out [N, out_dim], the forward's activations, weights packed for the backward ->
@@ -237,6 +281,7 @@ TORCH_LIBRARY(scalar_nerf_mlp_f32, m) {
   m.def("isa() -> str", &isa);
   m.def("forward(Tensor input, Tensor[] weights_t, Tensor[] biases, int[] relu, int out_dim, str isa) -> Tensor[]",
         &forward);
+  m.def("infer(Tensor input, Tensor[] weights_t, Tensor[] biases, int[] relu, int out_dim, str isa) -> Tensor", &infer);
   m.def("backward(Tensor grad_out, Tensor[] activations, Tensor[] weights, int[] relu, int in_dim, str isa) -> Tensor[]",
         &backward);
 }

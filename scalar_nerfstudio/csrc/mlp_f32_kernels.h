@@ -128,6 +128,31 @@ inline void forward_tile(const float* input, int64_t in_dim, const std::vector<L
   }
 }
 
+// One tile of the inference forward: rows [r0, r0 + kTile) through every layer, the activations in
+// the caller's per-thread tile buffers (bufs[l] [kTile, Kp_l] for l < L, bufs[L] [kTile, Op_last])
+// instead of the [Npad, Kp_l] tensors the backward needs.
+inline void infer_tile(const float* input, int64_t in_dim, const std::vector<Layer>& layers,
+                       const std::vector<const float*>& weights_t, const std::vector<const float*>& biases,
+                       const std::vector<float*>& bufs, float* out, int64_t out_dim, int64_t n, int64_t r0) {
+  const int64_t kp0 = layers[0].in_padded;
+  for (int64_t r = 0; r < kTile; ++r) {
+    float* dst = bufs[0] + r * kp0;
+    const int64_t filled = r0 + r < n ? in_dim : 0;
+    if (filled > 0) std::memcpy(dst, input + (r0 + r) * in_dim, filled * sizeof(float));
+    std::fill(dst + filled, dst + kp0, 0.0f);
+  }
+  const size_t num_layers = layers.size();
+  for (size_t l = 0; l < num_layers; ++l) {
+    const Layer& ly = layers[l];
+    const bool last = l + 1 == num_layers;
+    gemm_tile(bufs[l], ly.in_padded, weights_t[l], ly.out_padded, ly.in_padded, biases[l], ly.relu && !last, bufs[l + 1],
+              ly.out_padded);
+  }
+  const int64_t last_out = layers.back().out_padded;
+  for (int64_t r = 0; r < kTile && r0 + r < n; ++r)
+    std::memcpy(out + (r0 + r) * out_dim, bufs[num_layers] + r * last_out, out_dim * sizeof(float));
+}
+
 // One tile of the backward: every layer's bias and weight gradients (added to grad_b, grad_wt)
 // and, when grad_in is not null, the input gradient of rows [r0, r0 + kTile).
 inline void backward_tile(const float* grad_out, int64_t out_dim, const std::vector<Layer>& layers,

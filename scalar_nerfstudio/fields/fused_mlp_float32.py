@@ -8,7 +8,7 @@ AVX2 + FMA (chosen at run time where the CPU has both) and for the compiler's ba
 ``"portable"`` fallback, the only one off x86).
 
 :func:`float32_mlp_isa` says which kernels run here (or that the extension did not build);
-:func:`fused_mlp_float32` is the differentiable call. The result equals ``mlp(inputs)`` in float32
+:func:`fused_mlp_float32` is the differentiable call, :func:`mlp_float32_inference` the one without autograd. The result equals ``mlp(inputs)`` in float32
 up to the order of the sums.
 """
 
@@ -111,3 +111,35 @@ def fused_mlp_float32(mlp: nn.Sequential, inputs: Tensor, isa: Optional[Float32I
     if inputs.dtype != torch.float32 or any(p is not None and p.dtype != torch.float32 for p in params):
         raise TypeError(f"fused_mlp_float32 takes float32 inputs and parameters, got inputs in {inputs.dtype}")
     return _FusedMlpFloat32.apply(inputs, relu, isa, *params)
+
+
+def mlp_float32_inference(mlp: nn.Sequential, inputs: Tensor, isa: Optional[Float32Isa] = None) -> Tensor:
+    """``mlp(inputs)`` in float32 through the fused kernels, without autograd: each 64-row tile goes through
+    every layer in per-thread buffers (no [N, width] activation is written between layers).
+
+    Args:
+        mlp: Linear layers (float32 parameters), each optionally followed by one ReLU (none after the last).
+        inputs: [N, K] float32 CPU tensor.
+        isa: which compiled kernels: ``"avx2"`` or ``"portable"``; None: :func:`float32_mlp_isa`.
+
+    Returns:
+        [N, O] float32, equal to ``mlp(inputs)`` up to the order of the sums.
+
+    Raises:
+        RuntimeError and TypeError as :func:`fused_mlp_float32`.
+    """
+    available = float32_mlp_isa()
+    if available is None:
+        raise RuntimeError("mlp_float32_inference needs the C++ extension, which did not build (see the warning logged)")
+    if isa is None:
+        isa = available
+    elif isa == "avx2" and available != "avx2":
+        raise RuntimeError("mlp_float32_inference: isa='avx2' asked for, but this CPU lacks AVX2 or FMA")
+    relu, params = mlp_arguments(mlp)
+    if inputs.dtype != torch.float32 or any(p is not None and p.dtype != torch.float32 for p in params):
+        raise TypeError(f"mlp_float32_inference takes float32 inputs and parameters, got inputs in {inputs.dtype}")
+    weights, biases = params[0::2], params[1::2]
+    packed = [pack_weights_float32(w)[0] for w in weights]
+    padded_biases = [padded_bias(b, w.shape[0], w, multiple=_WIDTH_MULTIPLE) for w, b in zip(weights, biases)]
+    with torch.no_grad():
+        return torch.ops.scalar_nerf_mlp_f32.infer(inputs.contiguous(), packed, padded_biases, [int(r) for r in relu], weights[-1].shape[0], isa)

@@ -21,7 +21,7 @@ from scalar_nerfstudio.encodings import HashGridEncoding, _cpp
 from scalar_nerfstudio.encodings.hash_grid import level_corners, sanitise_positions
 from scalar_nerfstudio.fields.decoder_kernels import CpuDecoderKernel, choose_cpu_decoder_kernel
 from scalar_nerfstudio.fields.fused_mlp import fused_mlp, fused_mlp_available, linear_layers
-from scalar_nerfstudio.fields.fused_mlp_float32 import float32_mlp_isa, fused_mlp_float32
+from scalar_nerfstudio.fields.fused_mlp_float32 import float32_mlp_isa, fused_mlp_float32, mlp_float32_inference
 
 _logger = logging.getLogger(__name__)
 
@@ -199,6 +199,9 @@ class Decoder(nn.Module):
         self.fused_cpu_inference = fused_linear_available()
         self.fused_cpu_training = training_kernel == "avx512bf16" and fused_mlp_available()
         self.float32_cpu_training = training_kernel == "avx2" and float32_mlp_isa() == "avx2"
+        self.float32_cpu_inference = self.float32_cpu_training
+        """Float32 layers without autograd on the CPU run through the same AVX2 kernels, tile by tile
+        (:func:`mlp_float32_inference`), instead of oneDNN layer by layer."""
         self.density_mlp = nn.Sequential(
             nn.Linear(in_dim, hidden_dim), nn.ReLU(inplace=True), nn.Linear(hidden_dim, 1 + geo_feat_dim)
         )
@@ -248,16 +251,21 @@ class Decoder(nn.Module):
     def _mlp(self, mlp: nn.Sequential, inputs: Tensor) -> Tensor:
         """``mlp(inputs)``. On the CPU under bfloat16 autocast with autograd, through :func:`fused_mlp`
         (float32 result) where enabled; on the CPU in float32 (no autocast) with autograd, through
-        :func:`fused_mlp_float32` where enabled; without autograd on the CPU, through :func:`run_mlp_fused` in
+        :func:`fused_mlp_float32` where enabled; without autograd on the CPU in float32, through
+        :func:`mlp_float32_inference` where those kernels are enabled, else through :func:`run_mlp_fused` in
         the precision autocast asks for (float32 outside autocast), except bfloat16 on a CPU without
         native bfloat16 products (:func:`cpu_bfloat16_is_fast`), where oneDNN has no such kernel."""
         if self._fused_training_applies(inputs):
             return fused_mlp(mlp, inputs)
         if self._float32_training_applies(inputs):
             return fused_mlp_float32(mlp, inputs, "avx2")
-        if not self.fused_cpu_inference or torch.is_grad_enabled() or inputs.device.type != "cpu":
+        if torch.is_grad_enabled() or inputs.device.type != "cpu":
             return mlp(inputs)
         dtype = cpu_autocast_dtype() or inputs.dtype
+        if self.float32_cpu_inference and dtype == torch.float32:
+            return mlp_float32_inference(mlp, inputs.float(), "avx2")
+        if not self.fused_cpu_inference:
+            return mlp(inputs)
         if dtype == torch.bfloat16 and not cpu_bfloat16_is_fast():  # oneDNN has no bfloat16 inner product on this CPU
             return mlp(inputs)
         return run_mlp_fused(mlp, inputs, dtype)

@@ -26,8 +26,9 @@ from scalar_nerfstudio.model_components.sampling import OccupancyGrid
 
 #: Samples per chunk of a no-grad density pass.
 DENSITY_CHUNK = 1 << 16
-#: Front-to-back segments of the samples at render time (rays that turned opaque stop being evaluated).
-RENDER_SEGMENTS = 4
+#: Candidates per ray evaluated in one front-to-back round at render time (rays that turned opaque stop
+#: being evaluated): smaller wastes fewer evaluations behind surfaces, larger makes fewer, larger rounds.
+RENDER_GROUP = 4
 
 
 class DensityField(Protocol):
@@ -104,10 +105,11 @@ class VisibilitySampler:
         """:meth:`visible` without gradients, keeping what the field computed on the way:
         ([M] flat sample indices, [M] density, [M, F] geometry features).
 
-        The samples are taken front to back in :data:`RENDER_SEGMENTS` segments along the rays: a
-        segment evaluates only the rays whose transmittance is still above the threshold, so the
-        occupied samples behind a surface are never evaluated (the kept samples and their values are
-        those of one pass over every occupied sample)."""
+        The candidates (the samples :meth:`worth_evaluating` keeps) are taken front to back in rounds of
+        :data:`RENDER_GROUP` per ray: a round evaluates the next candidates of the rays whose
+        transmittance is still above the threshold, so a ray that turned opaque costs at most
+        ``RENDER_GROUP - 1`` evaluations behind its surface (the kept samples and their values are those
+        of one pass over every candidate)."""
         num_rays, num_samples = deltas.shape
         threshold = self.transmittance_threshold
         if threshold <= 0 or num_rays == 0:
@@ -115,34 +117,40 @@ class VisibilitySampler:
             density, geo = self.field.density_at_unit(unit_positions[candidate_ids])
             return candidate_ids, density, geo
         occupied = self.worth_evaluating(unit_positions, deltas.reshape(-1)).reshape(num_rays, num_samples)
+        candidate_ids = torch.nonzero(occupied.reshape(-1)).squeeze(-1)  # [C] ray-major, front to back in a ray
+        counts = occupied.sum(dim=1)  # [R] candidates per ray
+        firsts = torch.cumsum(counts, dim=0) - counts  # [R] each ray's first candidate in candidate_ids
+        flat_deltas = deltas.reshape(-1)
         log_threshold = math.log(threshold)
-        depth_before = deltas.new_zeros(num_rays)  # [R] optical depth in front of the segment
+        depth_before = deltas.new_zeros(num_rays)  # [R] optical depth in front of the round
+        group = max(int(RENDER_GROUP), 1)
+        offsets = torch.arange(group, device=deltas.device)  # [k]
         kept_ids: List[Tensor] = []
         kept_density: List[Tensor] = []
         kept_geo: List[Tensor] = []
-        bounds = torch.linspace(0, num_samples, min(RENDER_SEGMENTS, num_samples) + 1).round().long().tolist()
-        for start, end in zip(bounds[:-1], bounds[1:]):
-            alive = -depth_before > log_threshold  # [R] light still reaches the segment
-            rays, offsets = torch.nonzero(occupied[:, start:end] & alive[:, None], as_tuple=True)
+        most = int(counts.max()) if candidate_ids.numel() else 0
+        for rank in range(0, most, group):
+            rays = torch.nonzero((counts > rank) & (-depth_before > log_threshold)).squeeze(-1)  # [A] light still reaches them
             if rays.numel() == 0:
-                if not bool(alive.any()):
-                    break
-                continue
-            ids = rays * num_samples + start + offsets
+                break
+            valid = (rank + offsets)[None, :] < counts[rays, None]  # [A, k] the ray has that candidate
+            ids = candidate_ids[(firsts[rays, None] + rank + offsets[None, :])[valid]]  # [N] flat sample ids, row-major over [A, k]
             density, geo = self.field.density_at_unit(unit_positions[ids])
-            densities = deltas.new_zeros(num_rays, end - start)
-            densities[rays, offsets] = density.float()
-            alphas = alphas_from_densities(densities, deltas[:, start:end])
+            packed_density = deltas.new_zeros(rays.numel(), group)
+            packed_density[valid] = density.float()
+            packed_deltas = deltas.new_zeros(rays.numel(), group)
+            packed_deltas[valid] = flat_deltas[ids]
+            alphas = alphas_from_densities(packed_density, packed_deltas)  # [A, k]; 0 where there is no candidate
             optical = -torch.log1p(-alphas.clamp(0.0, 1.0 - 1e-7))
-            accumulated = torch.cumsum(optical, dim=-1) + depth_before[:, None]
-            before = torch.cat([depth_before[:, None], accumulated[:, :-1]], dim=-1)  # [R, seg] in front of each sample
-            keep = torch.exp(-before[rays, offsets]) > threshold
+            accumulated = torch.cumsum(optical, dim=-1) + depth_before[rays, None]
+            before = torch.cat([depth_before[rays, None], accumulated[:, :-1]], dim=-1)  # [A, k] in front of each candidate
+            keep = torch.exp(-before[valid]) > threshold
             if self.skips_transparent():
-                keep &= alphas[rays, offsets] > self.alpha_threshold
+                keep &= alphas[valid] > self.alpha_threshold
             kept_ids.append(ids[keep])
             kept_density.append(density[keep])
             kept_geo.append(geo[keep])
-            depth_before = accumulated[:, -1]
+            depth_before[rays] = accumulated[:, -1]
         if not kept_ids:
             empty = unit_positions[:0]
             density, geo = self.field.density_at_unit(empty)

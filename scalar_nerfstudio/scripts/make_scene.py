@@ -78,6 +78,9 @@ def build_parser() -> argparse.ArgumentParser:
     town.add_argument("--rig-headings", type=float, nargs="+", default=None, metavar="DEG",
                       help="rig cameras' headings in degrees from the driving direction, positive to the left (default 30 -30)")
     town.add_argument("--supersample", type=_positive_int, default=None, help="colour samples per pixel along each axis (default 1)")
+    town.add_argument("--photos", type=Path, default=None, metavar="DIR",
+                      help="also write the frames to DIR as JPEG photos with their camera's GPS position and focal length in the EXIF "
+                           "(for trying scalar-nerf-process-data on a capture of known poses)")
     town.add_argument("--workers", type=_positive_int, default=1, help="processes rendering frames at once (same output; default 1)")
     parser.add_argument("--overwrite", action="store_true", help="write into a non-empty folder, replacing an earlier scene's frames")
     parser.add_argument("--quiet", action="store_true", help="no progress bar or summary")
@@ -88,24 +91,24 @@ def _refuse(parser: argparse.ArgumentParser, message: str) -> NoReturn:
     parser.exit(1, f"{parser.prog}: error: {message}\n")
 
 
-def _check_output(parser: argparse.ArgumentParser, output: Path, overwrite: bool) -> None:
-    """Refuse an output that is a file, a non-empty folder (without --overwrite) or not writable
-    (exit status 1: the options are well formed, the folder is not usable)."""
+def _check_output(parser: argparse.ArgumentParser, output: Path, overwrite: bool, option: str = "--output") -> None:
+    """Refuse an output (the folder of ``option``) that is a file, a non-empty folder (without --overwrite)
+    or not writable (exit status 1: the options are well formed, the folder is not usable)."""
     import os
 
     if output.exists() and not output.is_dir():
-        _refuse(parser, f"--output {output} exists and is not a folder")
+        _refuse(parser, f"{option} {output} exists and is not a folder")
     if output.is_dir():
         if any(output.iterdir()) and not overwrite:
-            _refuse(parser, f"--output {output} is not empty (pass --overwrite to write into it)")
+            _refuse(parser, f"{option} {output} is not empty (pass --overwrite to write into it)")
         if not os.access(output, os.W_OK | os.X_OK):
-            _refuse(parser, f"--output {output} is not writable")
+            _refuse(parser, f"{option} {output} is not writable")
         return
     parent = output.parent
     while not parent.exists() and parent != parent.parent:
         parent = parent.parent
     if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
-        _refuse(parser, f"--output {output} cannot be created: {parent} is not a writable folder")
+        _refuse(parser, f"{option} {output} cannot be created: {parent} is not a writable folder")
 
 
 def _option_message(error: ValueError) -> str:
@@ -115,6 +118,7 @@ def _option_message(error: ValueError) -> str:
 
 def _town(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
     from scalar_nerfstudio.scenes.town import TownConfig, blocks_for_extent, build_town, town_camera_poses, write_town
+    from scalar_nerfstudio.scenes.town.photos import write_photos
 
     options = {}
     for key, name in (("num_images", "num_images"), ("width", "width"), ("height", "height"), ("block_size", "block_size"),
@@ -145,6 +149,8 @@ def _town(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
     except ValueError as error:
         parser.error(_option_message(error))
     _check_output(parser, args.output, args.overwrite)
+    if args.photos is not None:
+        _check_output(parser, args.photos, args.overwrite, option="--photos")
     start = time.perf_counter()
     try:
         path = write_town(args.output, config, progress=not args.quiet, overwrite=args.overwrite, workers=args.workers)
@@ -152,6 +158,7 @@ def _town(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
         parser.error(str(error))
     except ValueError as error:  # a capture that cannot be flown over this town (nothing written)
         parser.error(_option_message(error))
+    photos = write_photos(args.output, args.photos) if args.photos is not None else 0
     seconds = time.perf_counter() - start
     if not args.quiet:
         town = build_town(config)
@@ -161,6 +168,9 @@ def _town(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
             f"({sx:.0f} x {sy:.0f} m, {town.num_buildings} buildings) to {path.parent} in {seconds:.1f} s."
         )
         print(_automatic_blocks_line(config, town_camera_poses(town)))
+        if photos:
+            print(f"Wrote {photos} JPEG photos with GPS and focal length in their EXIF to {args.photos}: "
+                  f"scalar-nerf-process-data --images {args.photos} --output <folder>")
         print(f"Train: ns-train scalar-nerf --data {path.parent} nerfstudio-data --eval-mode interval --eval-interval 8")
     return 0
 
@@ -182,7 +192,7 @@ def _automatic_blocks_line(config, poses) -> str:
 def _courtyard(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
     from scalar_nerfstudio.scenes.courtyard import write_scene
 
-    town_only = [f"--{name.replace('_', '-')}" for name in ("blocks_x", "blocks_y", "extent", "block_size", "street_width", "road_width", "fov", "supersample", "capture", "rig_headings", "aerial_altitude")
+    town_only = [f"--{name.replace('_', '-')}" for name in ("blocks_x", "blocks_y", "extent", "block_size", "street_width", "road_width", "fov", "supersample", "capture", "rig_headings", "aerial_altitude", "photos")
                  if getattr(args, name) is not None]
     if town_only:
         parser.error(f"{', '.join(town_only)}: only for --scene town")
