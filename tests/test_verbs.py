@@ -197,15 +197,31 @@ def test_ns_viewer_loads_the_run(auto_runs: Dict[str, Path], name: str) -> None:
     assert "<html" in viewer_page(auto_runs[name] / "config.yml").lower()
 
 
-@pytest.mark.parametrize("name", ["k1", "k2"])
-def test_ns_export_pointcloud(auto_runs: Dict[str, Path], name: str, tmp_path: Path) -> None:
-    """One merged point cloud of the fused model, with unit normals (where its points lie is checked
-    on a longer run in test_export.py)."""
+EXPORTS = {  # nerfstudio's exporter on a small budget: its file, and the options that keep it to seconds
+    "pointcloud": ("point_cloud.ply", ["--num-points", "300", "--remove-outliers", "False", "--num-rays-per-batch", "4096"]),
+    "tsdf": ("tsdf_mesh.ply", ["--resolution", "32", "--batch-size", "4", "--downscale-factor", "4", "--texture-method", "tsdf"]),
+    "poisson": ("poisson_mesh.ply", ["--num-points", "2000", "--remove-outliers", "False", "--num-rays-per-batch", "4096",
+                                     "--texture-method", "point_cloud"]),
+}
+
+
+@pytest.mark.parametrize("name, verb", [("k1", "pointcloud"), ("k2", "tsdf"), ("k2", "poisson")])
+def test_ns_export_writes_the_runs_cloud_or_mesh(auto_runs: Dict[str, Path], name: str, verb: str, tmp_path: Path) -> None:
+    """``ns-export pointcloud`` (one merged cloud of the fused model, with unit normals; where its points lie is
+    checked on a longer run in test_export.py), ``tsdf`` (the rendered depths fused into a mesh) and ``poisson``
+    (a mesh from the cloud and the model's normals): each writes a non-empty, finite result."""
     import open3d as o3d
 
-    _run([sys.executable, "-m", "nerfstudio.scripts.exporter", "pointcloud", "--load-config", str(auto_runs[name] / "config.yml"),
-          "--output-dir", str(tmp_path), "--num-points", "300", "--remove-outliers", "False", "--num-rays-per-batch", "4096"])
-    cloud = o3d.io.read_point_cloud(str(tmp_path / "point_cloud.ply"))
-    points, normals = np.asarray(cloud.points), np.asarray(cloud.normals)
-    assert len(points) > 0 and cloud.has_normals() and normals.shape == points.shape
-    assert np.isfinite(points).all() and np.allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-3)
+    filename, options = EXPORTS[verb]
+    _run([sys.executable, "-m", "nerfstudio.scripts.exporter", verb, "--load-config", str(auto_runs[name] / "config.yml"),
+          "--output-dir", str(tmp_path), *options])
+    if verb == "pointcloud":
+        cloud = o3d.io.read_point_cloud(str(tmp_path / filename))
+        points, normals = np.asarray(cloud.points), np.asarray(cloud.normals)
+        assert len(points) > 0 and cloud.has_normals() and normals.shape == points.shape
+        assert np.isfinite(points).all() and np.allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-3)
+        return
+    mesh = o3d.io.read_triangle_mesh(str(tmp_path / filename))
+    vertices, triangles = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
+    assert len(vertices) > 0 and len(triangles) > 0 and np.isfinite(vertices).all()
+    assert triangles.min() >= 0 and triangles.max() < len(vertices)
