@@ -57,8 +57,8 @@ class ScalarPipelineConfig(VanillaPipelineConfig):
     num_blocks: Optional[int] = None
     """K, the number of blocks the training images are split into (KMeans on camera centres). None:
     automatic, ceil(R^2 / T) for a layout R training pixels across and tables of T rows; 1: one model."""
-    max_auto_blocks: int = 8
-    """Upper bound of the automatic K (blocks)."""
+    max_auto_blocks: int = 64
+    """Upper bound of the automatic K (blocks): a capture of thousands of photos may call for dozens."""
     auto_min_images_per_block: int = 6
     """The automatic K leaves at least this many training images per block (images)."""
     block_log2_hashmap_size: Optional[int] = None

@@ -39,7 +39,7 @@ class PlanSettings:
     """K; None: automatic, ``ceil(R^2 / T)`` (blocks/capacity.py)."""
     log2_hashmap_size: int = 19
     """log2 rows of the global model's table (T of the automatic K)."""
-    max_auto_blocks: int = 8
+    max_auto_blocks: int = 64
     auto_min_images_per_block: int = 6
     aabb_scale: Tuple[float, float, float] = (1.2, 1.2, 1.2)
     split_seed: int = 0

@@ -210,15 +210,15 @@ class FusedRenderer:
         keys = [*FUSED_KEYS, *(["normals"] if normals else [])]
         widths = {"rgb": 3, "normals": 3}
         device = ray_bundle.origins.device
-        full = {k: torch.full((num_rays, widths.get(k, 1)), float("nan"), device=device) for k in keys}
         count = int(rays.sum())
         if block is not None:
             self.rays_rendered_by_block[block] = self.rays_rendered_by_block.get(block, 0) + count
-        if count == 0:
-            return full
-        if count == num_rays:
+        if count == num_rays > 0:  # every ray: no NaN-filled copy
             outputs = model.render_rays(ray_bundle.reshape((num_rays,)), normals=normals)
             return {k: outputs[k].reshape(num_rays, -1) for k in keys}
+        full = {k: torch.full((num_rays, widths.get(k, 1)), float("nan"), device=device) for k in keys}
+        if count == 0:
+            return full
         outputs = model.render_rays(ray_bundle.reshape((num_rays,))[rays], normals=normals)
         for key in keys:
             full[key][rays] = outputs[key].reshape(count, -1).to(full[key].dtype)
