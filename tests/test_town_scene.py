@@ -213,6 +213,26 @@ def test_nerfstudio_keeps_an_aerial_town_level(tmp_path: Path) -> None:
     assert spread > 0 and np.ptp(centres[:, 2]) < 0.03 * spread, (np.ptp(centres[:, 2]), spread)  # jitter: 1 m in 150 m
 
 
+def test_aerial_and_rig_capture_is_the_drones_frames_then_the_rigs_and_stays_level(tmp_path: Path) -> None:
+    """``aerial+rig``: the first half of the frames are the drone's survey, the rest the rig's drive, each as
+    its own capture of that many frames would take them; nerfstudio's orientation keeps the street cameras
+    (all at one height) level although half the cameras look down."""
+    from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
+
+    common = dict(width=16, height=12, blocks_x=2, blocks_y=2, seed=7)
+    mixed = TownConfig(num_images=121, capture="aerial+rig", **common)
+    poses = town_camera_poses(build_town(mixed))
+    aerial = town_camera_poses(build_town(TownConfig(num_images=61, capture="aerial", **common)))
+    rig = town_camera_poses(build_town(TownConfig(num_images=60, capture="rig", **common)))
+    assert poses.shape == (121, 4, 4) and np.array_equal(poses[:61], aerial) and np.array_equal(poses[61:], rig)
+    write_town(tmp_path / "scene", mixed, progress=False)
+    train = NerfstudioDataParserConfig(data=tmp_path / "scene", eval_mode="interval", eval_interval=8).setup().get_dataparser_outputs(split="train")
+    centres = train.cameras.camera_to_worlds[:, :3, 3].double().numpy()
+    street = np.array([int(Path(name).stem.split("_")[1]) >= 61 for name in train.image_filenames])
+    spread = np.ptp(centres[:, :2], axis=0).max()
+    assert street.sum() > 40 and np.ptp(centres[street, 2]) < 0.01 * spread, (np.ptp(centres[street, 2]), spread)
+
+
 @pytest.mark.parametrize("altitude, message", [(20.0, "tallest roof"), (64.0, "beyond the depth PNGs")])
 def test_an_aerial_altitude_that_cannot_be_flown_is_refused_before_writing(tmp_path: Path, altitude: float, message: str) -> None:
     config = TownConfig(num_images=4, width=16, height=12, blocks_x=2, blocks_y=2, capture="aerial", aerial_altitude=altitude, seed=5)
@@ -407,7 +427,7 @@ def test_cli_writes_a_town_and_a_courtyard(tmp_path: Path) -> None:
         (["--scene", "courtyard", "--blocks-x", "2"], "only for --scene town"),
         (["--scene", "courtyard", "--capture", "walk"], "only for --scene town"),
         (["--scene", "courtyard", "--aerial-altitude", "50"], "only for --scene town"),
-        (["--aerial-altitude", "56"], "only with --capture aerial"),
+        (["--aerial-altitude", "56"], "only with --capture aerial or aerial+rig"),
         (["--rig-headings", "200"], "--rig-headings"),
         (["--capture", "drone"], "--capture"),
         (["NON_EMPTY"], "not empty"),

@@ -71,10 +71,11 @@ def build_parser() -> argparse.ArgumentParser:
     town.add_argument("--street-width", type=_positive_float, default=None, help="building line to building line in metres (default 14)")
     town.add_argument("--road-width", type=_positive_float, default=None, help="asphalt width in metres (default 8, or street width - 6 for narrower streets)")
     town.add_argument("--fov", type=_positive_float, default=None, help="horizontal field of view in degrees (default 45)")
-    town.add_argument("--capture", choices=("rig", "walk", "aerial"), default=None,
+    town.add_argument("--capture", choices=("rig", "walk", "aerial", "aerial+rig"), default=None,
                       help="rig: a vehicle's cameras each take a frame at evenly spaced stops (default); walk: one frame per "
-                           "position, random heading; aerial: a drone flies parallel lines over the town, looking down")
-    town.add_argument("--aerial-altitude", type=_positive_float, default=None, help="aerial only: flight altitude in metres (default 55)")
+                           "position, random heading; aerial: a drone flies parallel lines over the town, looking down; "
+                           "aerial+rig: the first half of the frames from the drone, the rest from the rig")
+    town.add_argument("--aerial-altitude", type=_positive_float, default=None, help="aerial captures only: flight altitude in metres (default 55)")
     town.add_argument("--rig-headings", type=float, nargs="+", default=None, metavar="DEG",
                       help="rig cameras' headings in degrees from the driving direction, positive to the left (default 30 -30)")
     town.add_argument("--supersample", type=_positive_int, default=None, help="colour samples per pixel along each axis (default 1)")
@@ -130,8 +131,8 @@ def _town(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
     if args.rig_headings is not None:
         options["rig_headings"] = tuple(args.rig_headings)
     if args.aerial_altitude is not None:
-        if args.capture != "aerial":
-            parser.error("--aerial-altitude: only with --capture aerial")
+        if args.capture not in ("aerial", "aerial+rig"):
+            parser.error("--aerial-altitude: only with --capture aerial or aerial+rig")
         options["aerial_altitude"] = args.aerial_altitude
     if args.street_width is not None and args.road_width is None:
         options["road_width"] = max(2.0, min(TownConfig.road_width, args.street_width - 6.0))

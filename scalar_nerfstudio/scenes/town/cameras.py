@@ -8,6 +8,8 @@ as nerfstudio's transforms.json expects, in frame order.
 * ``walk``: one frame per position along the streets, with a random heading.
 * ``aerial``: a drone flies parallel flight lines over the whole town (a survey's lawnmower) looking
   down, leaning forward from the vertical by :data:`AERIAL_TILT_DEG`.
+* ``aerial+rig``: both, as a city survey combines them: the first half of the frames from the drone, the
+  rest from the vehicle's rig (each spread over the whole town).
 """
 
 from __future__ import annotations
@@ -68,10 +70,13 @@ def _walk_segments(town: Town) -> List[Tuple[np.ndarray, np.ndarray]]:
 def town_camera_poses(town: Town) -> np.ndarray:
     """[N, 4, 4] camera-to-world poses (OpenGL axes), in frame order, of the town's capture
     (:attr:`TownConfig.capture`)."""
-    capture = town.config.capture
+    capture, n = town.config.capture, town.config.num_images
     if capture == "aerial":
-        return _aerial_poses(town)
-    return _rig_poses(town) if capture == "rig" else _walk_poses(town)
+        return _aerial_poses(town, n)
+    if capture == "aerial+rig":
+        aerial = (n + 1) // 2
+        return np.concatenate([_aerial_poses(town, aerial), _rig_poses(town, n - aerial)])
+    return _rig_poses(town, n) if capture == "rig" else _walk_poses(town)
 
 
 def _street_positions(town: Town, arc: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
@@ -92,8 +97,8 @@ def _street_positions(town: Town, arc: np.ndarray) -> Tuple[np.ndarray, np.ndarr
     return points, directions
 
 
-def _rig_poses(town: Town) -> np.ndarray:
-    """The ``rig`` capture: ceil(N / R) stops evenly spread over the streets, R = len(rig_headings)
+def _rig_poses(town: Town, num_images: int) -> np.ndarray:
+    """The ``rig`` capture of ``num_images`` = N frames: ceil(N / R) stops evenly spread over the streets, R = len(rig_headings)
     frames per stop (the last stop keeps the first cameras only). The vehicle weaves slowly across
     the lanes; each camera's heading jitters by about 3 degrees and its pitch by a few degrees up."""
     config = town.config
@@ -101,7 +106,7 @@ def _rig_poses(town: Town) -> np.ndarray:
     segments = _walk_segments(town)
     total = float(sum(np.linalg.norm(b - a) for a, b in segments))
     headings = np.radians(np.asarray(config.rig_headings, dtype=float))
-    num_stops = -(-config.num_images // len(headings))
+    num_stops = -(-num_images // len(headings))
     arc = (np.arange(num_stops) + 0.5) * (total / num_stops)
     points, directions = _street_positions(town, arc)
     yaws = np.arctan2(directions[:, 1], directions[:, 0])
@@ -116,7 +121,7 @@ def _rig_poses(town: Town) -> np.ndarray:
             yaw = yaws[stop] + heading + math.radians(rng.normal(0.0, 3.0))
             pitch = math.radians(rng.uniform(0.0, 12.0) if abs(heading) >= math.radians(60.0) else rng.uniform(-2.0, 8.0))
             poses[stop * len(headings) + c] = _camera_to_world(np.array([xy[0], xy[1], height]), yaw, pitch)
-    return poses[: config.num_images]
+    return poses[:num_images]
 
 
 def _walk_poses(town: Town) -> np.ndarray:
@@ -151,8 +156,8 @@ def _walk_poses(town: Town) -> np.ndarray:
     return poses
 
 
-def _aerial_poses(town: Town) -> np.ndarray:
-    """The ``aerial`` capture: a drone flies parallel flight lines along x over the whole town (its
+def _aerial_poses(town: Town, num_images: int) -> np.ndarray:
+    """The ``aerial`` capture of ``num_images`` frames: a drone flies parallel flight lines along x over the whole town (its
     ring included), alternating direction (an even number of lines, so as many frames fly each
     way), lines at most half a footprint apart (50 % side overlap or more), with
     ``num_images`` frames evenly spread along the whole flight (frames are numbered in flight order,
@@ -191,15 +196,15 @@ def _aerial_poses(town: Town) -> np.ndarray:
     length, width = config.extent  # the town is centred on the origin; lines run along x
     num_lines = 2 * max(1, math.ceil(width / across))
     line_y = -width / 2.0 + (np.arange(num_lines) + 0.5) * (width / num_lines)
-    arc = (np.arange(config.num_images) + 0.5) * (num_lines * length / config.num_images)
+    arc = (np.arange(num_images) + 0.5) * (num_lines * length / num_images)
     line = np.minimum((arc // length).astype(np.int64), num_lines - 1)
     along = arc - line * length
     forward = line % 2 == 0
     x = np.where(forward, along - length / 2.0, length / 2.0 - along)
-    yaw = np.where(forward, 0.0, math.pi) + np.radians(rng.normal(0.0, 3.0, size=config.num_images))
-    lean = np.radians(rng.uniform(*AERIAL_TILT_DEG, size=config.num_images))
-    z = rng.uniform(lowest, highest, size=config.num_images)
-    poses = np.empty((config.num_images, 4, 4))
-    for k in range(config.num_images):
+    yaw = np.where(forward, 0.0, math.pi) + np.radians(rng.normal(0.0, 3.0, size=num_images))
+    lean = np.radians(rng.uniform(*AERIAL_TILT_DEG, size=num_images))
+    z = rng.uniform(lowest, highest, size=num_images)
+    poses = np.empty((num_images, 4, 4))
+    for k in range(num_images):
         poses[k] = _camera_to_world(np.array([x[k], line_y[line[k]], z[k]]), float(yaw[k]), -0.5 * math.pi + float(lean[k]))
     return poses

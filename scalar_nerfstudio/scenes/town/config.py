@@ -26,7 +26,7 @@ GENERATOR_VERSION = 2
 #: Generator versions whose scene.json :func:`load_town` reads.
 READABLE_VERSIONS = (1, 2)
 #: The ways the cameras capture the town (:attr:`TownConfig.capture`).
-CAPTURES = ("rig", "walk", "aerial")
+CAPTURES = ("rig", "walk", "aerial", "aerial+rig")
 #: Metres per unit of the 16-bit depth PNGs (nerfstudio's default ``depth_unit_scale_factor``).
 DEPTH_PNG_UNIT_M = 1e-3
 #: The largest depth a 16-bit PNG in millimetres holds; farther points are written as 0 (unknown).
@@ -67,7 +67,8 @@ class TownConfig:
     capture: str = "rig"
     """How the cameras capture the town: ``rig`` (a vehicle stops at even intervals along the streets and each
     camera of ``rig_headings`` takes a frame), ``walk`` (one street-level frame per position, random
-    heading; generator version 1's capture) or ``aerial`` (a drone's parallel flight lines, looking down)."""
+    heading; generator version 1's capture), ``aerial`` (a drone's parallel flight lines, looking down) or
+    ``aerial+rig`` (the first half of the frames from the drone, the rest from the rig)."""
     rig_headings: Tuple[float, ...] = (30.0, -30.0)
     """``rig`` only: the cameras' headings in degrees from the driving direction (positive: left)."""
     aerial_altitude: float = 55.0
