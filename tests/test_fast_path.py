@@ -68,9 +68,10 @@ def test_evaluation_without_autograd_runs_the_fused_decoder_and_gives_the_traini
     points = torch.rand(5000, 3, generator=generator)
     directions = torch.nn.functional.normalize(torch.randn(5000, 3, generator=generator), dim=-1)
     camera_indices = torch.zeros(5000, dtype=torch.long)
-    fused_calls = []
-    run_fused = scalar_field.run_mlp_fused
+    fused_calls = []  # oneDNN's fused layers, or the AVX2 tile kernels where the float32 decoder trains through them
+    run_fused, run_tiles = scalar_field.run_mlp_fused, scalar_field.mlp_float32_inference
     monkeypatch.setattr(scalar_field, "run_mlp_fused", lambda *args: fused_calls.append(1) or run_fused(*args))
+    monkeypatch.setattr(scalar_field, "mlp_float32_inference", lambda *args: fused_calls.append(1) or run_tiles(*args))
 
     density_grad, geo_grad = field.density_at_unit(points)  # autograd on: nn.Linear as in training
     rgb_grad = field.colour(geo_grad, directions, torch.arange(5000), camera_indices=camera_indices)

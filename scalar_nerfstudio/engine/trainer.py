@@ -164,13 +164,20 @@ class ScalarTrainer(TrainerBase):
         super().__init__(config, local_rank, world_size, device_type=device,
                          mixed_precision=bool(config.mixed_precision) and device == "cuda")
         self.thread_governor = ThreadGovernor(enabled=config.adapt_threads and device == "cpu")
-        self.training_clock = TrainingClock()
-        """Training wall-clock and pace: the ETA lines and a time budget's plan (a benchmark pauses it while it evaluates)."""
         self._schedules: Dict[str, WarmupExponentialDecaySchedulerConfig] = {}
         self._total_steps = 0
-        self.clock_follower = ClockFollower(self.training_clock, replan=self._replan, total_steps=lambda: self._total_steps)
+        self.clock_follower = ClockFollower(TrainingClock(), replan=self._replan, total_steps=lambda: self._total_steps)
         """The ETA lines, and a time budget's plan made again as the pace is known (engine/budget.py)."""
         self._trained_s_before: Optional[float] = None
+
+    @property
+    def training_clock(self) -> TrainingClock:
+        """Training wall-clock and pace: the ETA lines and a time budget's plan (a benchmark pauses it while it evaluates)."""
+        return self.clock_follower.clock
+
+    @training_clock.setter
+    def training_clock(self, clock: TrainingClock) -> None:
+        self.clock_follower.clock = clock
 
     def setup(self, test_mode: Literal["test", "val", "inference"] = "val") -> None:
         super().setup(test_mode=test_mode)

@@ -1,4 +1,4 @@
-"""A written town scene as a camera's photos: JPEGs that carry their camera's GPS position and focal length.
+"""A written town scene as a camera's photos: JPEGs (quality 95, no chroma subsampling) that carry their camera's GPS position and focal length.
 
 ``scalar-nerf-make-scene --photos DIR`` writes ``DIR/frame_XXXXX.jpg``, one per frame of the scene, so that
 ``scalar-nerf-process-data --images DIR`` can be tried on a capture whose poses are known (the scene's
@@ -101,6 +101,6 @@ def write_photos(scene: Path, photos: Path, *, quality: int = 95, origin: Tuple[
         point = gps_of_town_point(camera_to_world[:3, 3], origin)
         with Image.open(scene / file_path) as image:
             rgb = image.convert("RGB")
-        rgb.save(photos / (Path(file_path).stem + ".jpg"), quality=quality, exif=_exif(point, focal_35mm, width, height))
+        rgb.save(photos / (Path(file_path).stem + ".jpg"), quality=quality, subsampling=0, exif=_exif(point, focal_35mm, width, height))
         count += 1
     return count
