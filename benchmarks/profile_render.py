@@ -25,6 +25,7 @@ import itertools
 import json
 import statistics
 import subprocess
+import sys
 import time
 import types
 from pathlib import Path
@@ -53,15 +54,28 @@ def install_probes() -> None:
 
         setattr(owner, name, wrapper)
 
+    from scalar_nerfstudio.models import scalar_model
+    from scalar_nerfstudio.models.fused_render import FusedRenderer
+
     wrap(VisibilitySampler, "worth_evaluating", "grid test", lambda a, r: STATS.update(candidates=int(r.sum())))
+    wrap(VisibilitySampler, "visible_with_features", "visibility (rounds, with the density)")
+    wrap(scalar_model.ScalarModel, "_ray_samples", "sampling")
+    wrap(scalar_model.ScalarModel, "render_rays", "one model's render")
+    for name in ("render_weights", "composite", "render_depth"):  # module globals used by get_outputs
+        wrap(scalar_model, name, f"volume.{name}")
+    wrap(FusedRenderer, "render", "fused render (all models, fusion)")
+    wrap(FusedRenderer, "select_rays", "block selection")
+    wrap(FusedRenderer, "_guard_transparent_blocks", "guard (the global model's rays)")
     wrap(ScalarField, "density_at_unit", "field.density", lambda a, r: STATS.update(density_evals=a[1].shape[0]))
     wrap(ScalarField, "colour", "field.colour", lambda a, r: STATS.update(colour_evals=a[1].shape[0]))
 
 
 def baseline_visibility(ref: str):
     """``VisibilitySampler.visible_with_features`` of commit ``ref`` (its module executed apart, with its own constants)."""
-    source = subprocess.run(["git", "show", f"{ref}:{VISIBILITY_PATH}"], capture_output=True, text=True, check=True).stdout
+    repo = Path(__file__).resolve().parents[1]
+    source = subprocess.run(["git", "-C", str(repo), "show", f"{ref}:{VISIBILITY_PATH}"], capture_output=True, text=True, check=True).stdout
     module = types.ModuleType(f"visibility_at_{ref}")
+    sys.modules[module.__name__] = module  # its dataclasses look their module up
     exec(compile(source, f"{ref}:{VISIBILITY_PATH}", "exec"), module.__dict__)  # noqa: S102 (the project's own history)
     return module.VisibilitySampler.visible_with_features
 
@@ -152,7 +166,10 @@ def main() -> None:
     if args.profile:
         with torch.no_grad(), torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as profile:
             render(variants[0])
-        print(profile.key_averages().table(sort_by="self_cpu_time_total", row_limit=25))
+        averages = profile.key_averages()
+        print(averages.table(sort_by="self_cpu_time_total", row_limit=25))
+        for event in sorted((e for e in averages if not e.key.startswith(("aten::", "scalar_nerf", "mkldnn"))), key=lambda e: -e.cpu_time_total):
+            print(f"{event.key:<40} {event.count:>6} calls {event.cpu_time_total / 1e3:>10.1f} ms (with what it calls)")
 
 
 if __name__ == "__main__":
