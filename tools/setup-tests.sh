@@ -1,7 +1,6 @@
 #!/usr/bin/env bash
 # Set up everything the test suite needs on a fresh machine:
-#   - the project with its test extras (pytest, selenium, ray, pycolmap, ruff, pyright), editable,
-#     and pyright's own package (it fetches it from npm on its first run: here, not in the tests);
+#   - the project with its test extras (pytest, selenium, ray, pycolmap, ruff), editable;
 #   - Debian's chromium + chromium-driver for the viewer's browser test, ffmpeg for the
 #     ns-render video verbs, and libusb-1.0-0 (open3d, which ns-export imports, loads
 #     libusb-1.0.so.0) (apt; sudo when not root).
@@ -10,7 +9,6 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 python -m pip install -e ".[test]"
-pyright --version >/dev/null || { echo "tools/setup-tests.sh: pyright could not fetch its package from npm" >&2; exit 1; }
 
 missing_tools() {
     local missing=()
