@@ -100,17 +100,24 @@ def fused_mlp_float32(mlp: nn.Sequential, inputs: Tensor, isa: Optional[Float32I
         RuntimeError: if the extension did not build, or ``isa`` is ``"avx2"`` on a CPU without AVX2 and FMA.
         TypeError: if ``mlp`` holds other layers, or the inputs or parameters are not float32.
     """
+    isa, relu, params = _checked_arguments("fused_mlp_float32", mlp, inputs, isa)
+    return _FusedMlpFloat32.apply(inputs, relu, isa, *params)
+
+
+def _checked_arguments(caller: str, mlp: nn.Sequential, inputs: Tensor, isa: Optional[Float32Isa]):
+    """(the kernels to run, the ReLU flags, the parameters) of ``caller``'s call, raising as
+    :func:`fused_mlp_float32` documents."""
     available = float32_mlp_isa()
     if available is None:
-        raise RuntimeError("fused_mlp_float32 needs the C++ extension, which did not build (see the warning logged)")
+        raise RuntimeError(f"{caller} needs the C++ extension, which did not build (see the warning logged)")
     if isa is None:
         isa = available
     elif isa == "avx2" and available != "avx2":
-        raise RuntimeError("fused_mlp_float32: isa='avx2' asked for, but this CPU lacks AVX2 or FMA")
+        raise RuntimeError(f"{caller}: isa='avx2' asked for, but this CPU lacks AVX2 or FMA")
     relu, params = mlp_arguments(mlp)
     if inputs.dtype != torch.float32 or any(p is not None and p.dtype != torch.float32 for p in params):
-        raise TypeError(f"fused_mlp_float32 takes float32 inputs and parameters, got inputs in {inputs.dtype}")
-    return _FusedMlpFloat32.apply(inputs, relu, isa, *params)
+        raise TypeError(f"{caller} takes float32 inputs and parameters, got inputs in {inputs.dtype}")
+    return isa, relu, params
 
 
 def mlp_float32_inference(mlp: nn.Sequential, inputs: Tensor, isa: Optional[Float32Isa] = None) -> Tensor:
@@ -128,16 +135,7 @@ def mlp_float32_inference(mlp: nn.Sequential, inputs: Tensor, isa: Optional[Floa
     Raises:
         RuntimeError and TypeError as :func:`fused_mlp_float32`.
     """
-    available = float32_mlp_isa()
-    if available is None:
-        raise RuntimeError("mlp_float32_inference needs the C++ extension, which did not build (see the warning logged)")
-    if isa is None:
-        isa = available
-    elif isa == "avx2" and available != "avx2":
-        raise RuntimeError("mlp_float32_inference: isa='avx2' asked for, but this CPU lacks AVX2 or FMA")
-    relu, params = mlp_arguments(mlp)
-    if inputs.dtype != torch.float32 or any(p is not None and p.dtype != torch.float32 for p in params):
-        raise TypeError(f"mlp_float32_inference takes float32 inputs and parameters, got inputs in {inputs.dtype}")
+    isa, relu, params = _checked_arguments("mlp_float32_inference", mlp, inputs, isa)
     weights, biases = params[0::2], params[1::2]
     packed = [pack_weights_float32(w)[0] for w in weights]
     padded_biases = [padded_bias(b, w.shape[0], w, multiple=_WIDTH_MULTIPLE) for w, b in zip(weights, biases)]
