@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from scalar_nerfstudio.benchmarking.curves import best_drop_db, budget_specs, curve_table, wall_clock_s
+from scalar_nerfstudio.benchmarking.curves import best_drop_db, budget_specs, curve_table, setting_line, wall_clock_s
 from scalar_nerfstudio.benchmarking.variants import BenchmarkConfig, check_options
 
 
@@ -56,3 +56,11 @@ def test_the_report_says_when_a_run_ends_below_its_own_best() -> None:
     specs = [{"name": "ngp-t@1m", "variant": "ngp-t", "budget": "1m"}, {"name": "ngp-t@2m", "variant": "ngp-t", "budget": "2m"}]
     table = curve_table(specs, {"ngp-t@1m": worse})
     assert "21.50 / 0.500" in table and "0.30 dB below its best" in table and "not run" in table
+
+
+def test_the_report_states_the_automatic_k_only_when_a_block_variant_ran(tmp_path: Path) -> None:
+    """A report of one-model runs only must not claim an automatic K (it once said K = 1 on a K = 5 capture)."""
+    config = BenchmarkConfig(data=tmp_path, log2_table=17)
+    assert "automatic K = 5," in setting_line(config, "2 cores", 5)
+    line = setting_line(config, "2 cores", None)
+    assert "automatic K" not in line and "no block variant" in line and "2^17 (ngp-t2: 2^19)" in line

@@ -24,14 +24,14 @@ import json
 import os
 import time
 from pathlib import Path
-from typing import Any, Dict, List, Tuple
+from typing import Any, Dict, List, Optional, Tuple
 
 from scalar_nerfstudio.atomic_io import atomic_write_bytes, atomic_write_text
 from scalar_nerfstudio.benchmarking.schedule import finished_run, run_runner
 from scalar_nerfstudio.benchmarking.variants import BenchmarkConfig, auto_k
 from scalar_nerfstudio.blocks.length import format_duration, parse_duration
 
-__all__ = ["CURVE_VARIANTS", "budget_specs", "curve_table", "run_curves"]
+__all__ = ["CURVE_VARIANTS", "budget_specs", "curve_table", "run_curves", "setting_line"]
 
 #: The variants a budget trains (see the module's text).
 #: The minutes the time axis is labelled at (those within the plotted range).
@@ -216,6 +216,14 @@ def _crops(specs: List[Dict[str, Any]], results: Dict[str, Dict[str, Any]], outp
     return written
 
 
+def setting_line(config: BenchmarkConfig, machine: str, automatic_k: Optional[int]) -> str:
+    """The report's line on the machine and the runs' settings; ``automatic_k`` None: no block variant ran
+    (the automatic K was not asked for, and is not stated)."""
+    k = f"automatic K = {automatic_k}" if automatic_k is not None else "no block variant"
+    return (f"Machine: {machine}. Tables 2^{config.log2_table} (ngp-t2: 2^{config.log2_table + 2}), {k}, seed {config.seed}, "
+            f"{config.rays_per_batch} rays per step.")
+
+
 def run_curves(config: BenchmarkConfig, command: str, machine: str) -> Dict[str, Any]:
     """Train (or read back, or continue) every budget run, then write the report; returns results.json's content."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
@@ -235,15 +243,14 @@ def run_curves(config: BenchmarkConfig, command: str, machine: str) -> Dict[str,
             progress.update(tasks[spec["name"]], completed=progress.tasks[tasks[spec["name"]]].total)
     files = _plots(specs, results, output_dir)
     files += _crops(specs, results, output_dir, config.heldout_view)
-    k = specs[0]["num_blocks_auto"] if specs else 1
+    k = specs[0]["num_blocks_auto"] if any(s["variant"].startswith("auto") for s in specs) else None  # None: no block variant ran
     report = {"command": command, "machine": machine, "budgets": list(dict.fromkeys(s["budget"] for s in specs)),
               "automatic_k": k, "seed": config.seed, "log2_table": config.log2_table, "files": files,
               "runs": {s["name"]: {"spec": s, "wall_clock_s": wall_clock_s(s, results[s["name"]]),
                                    "best_drop_db": best_drop_db(results[s["name"]]), **results[s["name"]]} for s in specs},
               "minutes": (time.time() - started) / 60}
     atomic_write_text(output_dir / "results.json", json.dumps(report, indent=2))
-    markdown = [f"# Speed against error: {config.data}", "", f"`{command}`", "", f"Machine: {machine}. Tables 2^{config.log2_table} "
-                f"(ngp-t2: 2^{config.log2_table + 2}), automatic K = {k}, seed {config.seed}, {config.rays_per_batch} rays per step.", "",
+    markdown = [f"# Speed against error: {config.data}", "", f"`{command}`", "", setting_line(config, machine, k), "",
                 "Held-out PSNR / SSIM at the end of each budget's run (its wall-clock; auto-parallel: global phase + slowest block "
                 "of K workers; steps as planned for the budget):", "", curve_table(specs, results), "",
                 *[f"![{f}]({f})" for f in files]]
