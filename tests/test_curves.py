@@ -7,7 +7,14 @@ from pathlib import Path
 
 import pytest
 
-from scalar_nerfstudio.benchmarking.curves import best_drop_db, budget_specs, curve_table, setting_line, wall_clock_s
+from scalar_nerfstudio.benchmarking.curves import (
+    automatic_k_of,
+    best_drop_db,
+    budget_specs,
+    curve_table,
+    setting_line,
+    wall_clock_s,
+)
 from scalar_nerfstudio.benchmarking.variants import BenchmarkConfig, check_options
 
 
@@ -58,8 +65,13 @@ def test_the_report_says_when_a_run_ends_below_its_own_best() -> None:
     assert "21.50 / 0.500" in table and "0.30 dB below its best" in table and "not run" in table
 
 
-def test_the_report_states_the_automatic_k_only_when_a_block_variant_ran(tmp_path: Path) -> None:
+def test_the_report_states_the_automatic_k_only_when_a_block_variant_ran(scene: Path, tmp_path: Path) -> None:
     """A report of one-model runs only must not claim an automatic K (it once said K = 1 on a K = 5 capture)."""
+    one_model = BenchmarkConfig(data=scene, downscale=1, log2_table=12, budgets=("15m",), variants=("ngp-t", "ngp-t2"), output_dir=tmp_path)
+    assert automatic_k_of(budget_specs(one_model, tmp_path / "runs")) is None
+    with_blocks = BenchmarkConfig(data=scene, downscale=1, log2_table=12, budgets=("15m",), variants=("ngp-t", "auto"), output_dir=tmp_path)
+    specs = budget_specs(with_blocks, tmp_path / "runs")
+    assert automatic_k_of(specs) == specs[1]["num_blocks_auto"] >= 1
     config = BenchmarkConfig(data=tmp_path, log2_table=17)
     assert "automatic K = 5," in setting_line(config, "2 cores", 5)
     line = setting_line(config, "2 cores", None)

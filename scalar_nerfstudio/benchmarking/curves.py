@@ -31,7 +31,7 @@ from scalar_nerfstudio.benchmarking.schedule import finished_run, run_runner
 from scalar_nerfstudio.benchmarking.variants import BenchmarkConfig, auto_k
 from scalar_nerfstudio.blocks.length import format_duration, parse_duration
 
-__all__ = ["CURVE_VARIANTS", "budget_specs", "curve_table", "run_curves", "setting_line"]
+__all__ = ["CURVE_VARIANTS", "automatic_k_of", "budget_specs", "curve_table", "run_curves", "setting_line"]
 
 #: The variants a budget trains (see the module's text).
 #: The minutes the time axis is labelled at (those within the plotted range).
@@ -216,6 +216,12 @@ def _crops(specs: List[Dict[str, Any]], results: Dict[str, Dict[str, Any]], outp
     return written
 
 
+def automatic_k_of(specs: List[Dict[str, Any]]) -> Optional[int]:
+    """The automatic K the budget runs ``specs`` were planned with, or None when none of them is a block
+    variant (:func:`budget_specs` then records 1 without asking the capture)."""
+    return specs[0]["num_blocks_auto"] if any(s["variant"].startswith("auto") for s in specs) else None
+
+
 def setting_line(config: BenchmarkConfig, machine: str, automatic_k: Optional[int]) -> str:
     """The report's line on the machine and the runs' settings; ``automatic_k`` None: no block variant ran
     (the automatic K was not asked for, and is not stated)."""
@@ -243,7 +249,7 @@ def run_curves(config: BenchmarkConfig, command: str, machine: str) -> Dict[str,
             progress.update(tasks[spec["name"]], completed=progress.tasks[tasks[spec["name"]]].total)
     files = _plots(specs, results, output_dir)
     files += _crops(specs, results, output_dir, config.heldout_view)
-    k = specs[0]["num_blocks_auto"] if any(s["variant"].startswith("auto") for s in specs) else None  # None: no block variant ran
+    k = automatic_k_of(specs)
     report = {"command": command, "machine": machine, "budgets": list(dict.fromkeys(s["budget"] for s in specs)),
               "automatic_k": k, "seed": config.seed, "log2_table": config.log2_table, "files": files,
               "runs": {s["name"]: {"spec": s, "wall_clock_s": wall_clock_s(s, results[s["name"]]),
