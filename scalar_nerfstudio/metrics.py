@@ -10,7 +10,6 @@ from typing import Dict, Optional
 import torch
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor, nn
-from torchmetrics.functional import structural_similarity_index_measure
 
 
 def alexnet_weights_path() -> Optional[Path]:
@@ -99,6 +98,8 @@ class ImageMetrics:
     @torch.no_grad()
     def __call__(self, predicted: Tensor, target: Tensor) -> Dict[str, float]:
         """[H, W, 3] predicted and target images in [0, 1] -> {"psnr", "ssim"[, "lpips"]}."""
+        from torchmetrics.functional import structural_similarity_index_measure  # here: its import takes seconds
+
         predicted_nchw = predicted.permute(2, 0, 1)[None].float()
         target_nchw = target.permute(2, 0, 1)[None].float()
         metrics = {

@@ -317,3 +317,43 @@ def test_render_commands_load_runs_with_their_modules_eval_setup(monkeypatch: py
     with after_each_load(lambda config, pipeline: changed.append((config, pipeline.path))):
         assert ns_render.eval_setup("run.yml")[3] == 3
     assert changed == [("config", "run.yml")] and ns_render.eval_setup is fake_eval_setup
+
+
+# --------------------------------------------------------------------------- seam/method_list.py
+def test_the_method_list_reads_only_frame_names_and_still_offers_to_install_an_external_method(
+        monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    """``list_methods_without_reading_sources``: nerfstudio's external-method configs read ``inspect`` as a
+    module global and only ``inspect.stack()[2].function`` of it; with the hook, listing them reads no source
+    file, and one made anywhere else still prints its install instructions and exits."""
+    from nerfstudio.configs import external_methods
+    from nerfstudio.configs.method_configs import all_methods
+
+    from scalar_nerfstudio.seam.method_list import list_methods_without_reading_sources, stack_without_sources
+
+    assert "inspect.stack()[2].function" in _source(external_methods.ExternalMethodDummyTrainerConfig.__post_init__)
+    assert "scalar-nerf" in all_methods  # nerfstudio loaded this package's methods, which set the hook up
+    assert external_methods.inspect is not inspect and external_methods.inspect.stack is stack_without_sources
+    list_methods_without_reading_sources()  # again: a no-op
+    assert external_methods.inspect.stack is stack_without_sources and external_methods.inspect.signature is inspect.signature
+
+    def named_chain() -> List[Any]:
+        return inner()
+
+    def inner() -> List[Any]:
+        return stack_without_sources()
+
+    fast, slow = named_chain(), inspect.stack()
+    assert [f.function for f in fast[:3]] == ["inner", "named_chain", "test_the_method_list_reads_only_frame_names_and_still_offers_to_install_an_external_method"]
+    assert [(f.function, f.filename) for f in fast[2:]] == [(f.function, f.filename) for f in slow]
+
+    def no_source(*args: Any, **kwargs: Any) -> None:
+        raise AssertionError("the method list read a source file")
+
+    monkeypatch.setattr(inspect, "findsource", no_source)
+    monkeypatch.setattr(inspect, "getmodule", no_source)
+    configs, descriptions = external_methods.get_external_methods()
+    assert len(configs) == len(descriptions) >= 10 and capsys.readouterr().out == ""
+    method = next(m for m in external_methods.external_methods if m.pip_package is None)
+    with pytest.raises(SystemExit) as exited:
+        external_methods.ExternalMethodDummyTrainerConfig(method_name="x", method=method)
+    assert exited.value.code == 0 and "For more information visit" in capsys.readouterr().out  # its instructions

@@ -60,7 +60,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from sklearn.cluster import KMeans
 
 from scalar_nerfstudio.atomic_io import atomic_write_text
 from scalar_nerfstudio.runs import RUN_SCHEMA_VERSION, RunSchemaError, upgrade_blocks_json
@@ -215,6 +214,8 @@ def _kmeans_groups(centres: np.ndarray, num_blocks: int, seed: int) -> list[np.n
     if k == 1:
         labels = np.zeros(centres.shape[0], dtype=np.int64)
     else:
+        from sklearn.cluster import KMeans  # here: importing scikit-learn takes seconds, and only a split needs it
+
         kmeans = KMeans(n_clusters=k, n_init=KMEANS_N_INIT, random_state=seed, algorithm="lloyd")
         labels = kmeans.fit_predict(centres)
     groups = [np.flatnonzero(labels == label) for label in np.unique(labels)]

@@ -33,6 +33,9 @@ import the others (nerfstudio's viewer and ``ns-render`` take seconds to import)
 * :mod:`.render_command` (``nerfstudio.scripts.render``): :func:`~.render_command.after_each_load`
   hands every run that ``ns-render``'s commands load to a function first (their module's
   ``eval_setup``).
+* :mod:`.method_list` (``nerfstudio.configs.external_methods``):
+  :func:`~.method_list.list_methods_without_reading_sources` gives nerfstudio's list of external methods
+  an ``inspect.stack`` that reads no source file (about 10 s of every ``ns-*`` command's start).
 
 This module itself imports nothing (the checkpoint layout below is read by modules that must not
 import nerfstudio's pipelines).
