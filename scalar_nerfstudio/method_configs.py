@@ -25,7 +25,7 @@ from scalar_nerfstudio.pipeline import ScalarPipelineConfig
 from scalar_nerfstudio.seam.method_list import list_methods_without_reading_sources
 
 # nerfstudio imports this module (its entry point) while it builds its list of methods, before it lists the
-# external ones: that listing then skips reading source files, about 10 s of every ns-* command's start.
+# external ones: that listing then skips reading source files (seconds of every ns-* command's start).
 list_methods_without_reading_sources()
 
 

@@ -35,7 +35,7 @@ import the others (nerfstudio's viewer and ``ns-render`` take seconds to import)
   ``eval_setup``).
 * :mod:`.method_list` (``nerfstudio.configs.external_methods``):
   :func:`~.method_list.list_methods_without_reading_sources` gives nerfstudio's list of external methods
-  an ``inspect.stack`` that reads no source file (about 10 s of every ``ns-*`` command's start).
+  an ``inspect.stack`` that reads no source file (seconds of every ``ns-*`` command's start).
 
 This module itself imports nothing (the checkpoint layout below is read by modules that must not
 import nerfstudio's pipelines).

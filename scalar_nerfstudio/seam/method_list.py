@@ -7,7 +7,7 @@ one's ``__post_init__`` calls ``inspect.stack()`` only to read the name of the f
 up (``get_external_methods``: stay quiet; anything else: offer to install the method).
 ``inspect.stack`` also reads the source line of every frame, and for a frame without a source file
 (importlib's frozen frames: the list is built while ``method_configs`` is imported) it scans all of
-``sys.modules``: with torch loaded about 0.4 s a call, some 10 s of every command's start on 2 cores.
+``sys.modules``: with torch loaded, seconds of every command's start (docs/results.md, "Command start").
 
 :func:`list_methods_without_reading_sources` gives that module an ``inspect`` whose ``stack()``
 returns the same frames with their names and line numbers, without their source lines. What is
@@ -20,30 +20,20 @@ from __future__ import annotations
 import inspect
 import sys
 from types import FrameType
-from typing import Any, List, NamedTuple, Optional
+from typing import Any, List, Optional
 
-__all__ = ["FrameName", "list_methods_without_reading_sources", "stack_without_sources"]
-
-
-class FrameName(NamedTuple):
-    """What :func:`stack_without_sources` says of a frame: ``inspect.FrameInfo`` without the source."""
-
-    frame: FrameType
-    filename: str
-    lineno: int
-    function: str
-    code_context: Optional[List[str]] = None
-    index: Optional[int] = None
+__all__ = ["list_methods_without_reading_sources", "stack_without_sources"]
 
 
-def stack_without_sources(context: int = 1) -> List[FrameName]:
+def stack_without_sources(context: int = 1) -> List[inspect.FrameInfo]:
     """``inspect.stack()`` (the caller's frame first, then the frames that called it) without reading
-    any source file: ``code_context`` and ``index`` are None. ``context`` is accepted and ignored."""
+    any source file: each ``FrameInfo``'s ``code_context`` and ``index`` are None. ``context`` is accepted
+    and ignored."""
     del context
-    frames: List[FrameName] = []
+    frames: List[inspect.FrameInfo] = []
     frame: Optional[FrameType] = sys._getframe(1)
     while frame is not None:
-        frames.append(FrameName(frame, frame.f_code.co_filename, frame.f_lineno, frame.f_code.co_name))
+        frames.append(inspect.FrameInfo(frame, frame.f_code.co_filename, frame.f_lineno, frame.f_code.co_name, None, None))
         frame = frame.f_back
     return frames
 
