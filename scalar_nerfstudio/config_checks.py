@@ -252,7 +252,7 @@ def check_trainer_options(config: ScalarTrainerConfig) -> None:
 def check_options(config: ScalarTrainerConfig, num_train_images: Optional[int] = None, num_frames: Optional[int] = None) -> None:
     """:func:`check_trainer_options` and :func:`check_pipeline_options` of a ``ScalarTrainerConfig``; pure."""
     check_trainer_options(config)
-    check_pipeline_options(config.pipeline, num_train_images, num_frames)
+    check_pipeline_options(config.scalar_pipeline, num_train_images, num_frames)
 
 
 # ----------------------------------------------------------------------------------- block plan

@@ -18,6 +18,8 @@ import torch
 from scalar_nerfstudio.metrics import psnr
 
 if TYPE_CHECKING:
+    from nerfstudio.cameras.cameras import Cameras
+
     from scalar_nerfstudio.pipeline import ScalarPipeline
 
 __all__ = ["SELECTING_MODES", "evaluate_fusion_modes", "markdown_table", "render_eval_images"]
@@ -28,9 +30,14 @@ SELECTING_MODES = ("global", "surface", "idw")
 EVERY_BLOCK = "@every-block"
 
 
-def _eval_images(pipeline: "ScalarPipeline", max_images: Optional[int]) -> List[Tuple[object, Dict[str, torch.Tensor]]]:
+def _eval_images(pipeline: "ScalarPipeline", max_images: Optional[int]) -> List[Tuple["Cameras", Dict[str, torch.Tensor]]]:
     """The (camera, batch) pairs evaluated: every eval image, or ``max_images`` of them evenly spread."""
-    pairs = list(pipeline.datamanager.fixed_indices_eval_dataloader)
+    from nerfstudio.data.utils.dataloaders import FixedIndicesEvalDataloader
+
+    loader = getattr(pipeline.datamanager, "fixed_indices_eval_dataloader", None)
+    if not isinstance(loader, FixedIndicesEvalDataloader):
+        raise TypeError(f"{type(pipeline.datamanager).__name__} has no fixed_indices_eval_dataloader of eval images")
+    pairs = list(loader)
     if max_images is None or max_images >= len(pairs):
         return pairs
     step = len(pairs) / max_images

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Dict, Optional
+from typing import Dict, Optional, cast
 
 import torch
 from nerfstudio.utils.rich_utils import CONSOLE
@@ -104,7 +104,8 @@ class ImageMetrics:
         target_nchw = target.permute(2, 0, 1)[None].float()
         metrics = {
             "psnr": float(psnr(predicted, target)),
-            "ssim": float(structural_similarity_index_measure(predicted_nchw, target_nchw, data_range=1.0)),
+            # a Tensor: only return_full_image=True makes it a (score, image) tuple
+            "ssim": float(cast(Tensor, structural_similarity_index_measure(predicted_nchw, target_nchw, data_range=1.0))),
         }
         lpips = self._lpips_module(predicted.device)
         if lpips is not None:

@@ -27,6 +27,7 @@ from scalar_nerfstudio.blocks.observation import block_observation
 from scalar_nerfstudio.blocks.plan import BlockPlan, PlanSettings, load_plan, plan_blocks, recorded_scene_bound
 from scalar_nerfstudio.blocks.split import BlockSplit, BlockSplitError, load_blocks_json
 from scalar_nerfstudio.data.datamanager import (
+    ScalarDataManager,
     ScalarDataManagerConfig,
     camera_centres,
     camera_layout,
@@ -139,10 +140,10 @@ class ScalarPipelineConfig(VanillaPipelineConfig):
         return PlanSettings(
             num_blocks=self.num_blocks, log2_hashmap_size=self.model.field.log2_hashmap_size,
             max_auto_blocks=self.max_auto_blocks, auto_min_images_per_block=self.auto_min_images_per_block,
-            aabb_scale=tuple(self.aabb_scale), split_seed=self.split_seed, min_images_per_block=self.min_images_per_block,
+            aabb_scale=(*self.aabb_scale,), split_seed=self.split_seed, min_images_per_block=self.min_images_per_block,
             min_overlap_images=self.min_overlap_images, only_block=self.only_block,
-            block_log2_hashmap_size=self.block_log2_hashmap_size, block_log2_hashmap_bounds=tuple(self.block_log2_hashmap_bounds),
-            block_max_resolution=self.block_max_resolution, block_max_resolution_bounds=tuple(self.block_max_resolution_bounds),
+            block_log2_hashmap_size=self.block_log2_hashmap_size, block_log2_hashmap_bounds=(*self.block_log2_hashmap_bounds,),
+            block_max_resolution=self.block_max_resolution, block_max_resolution_bounds=(*self.block_max_resolution_bounds,),
             global_max_resolution=self.model.field.max_resolution if self.block_init == "global" else None,
         )
 
@@ -176,6 +177,7 @@ class ScalarPipeline(PipelineBase):
     """Datamanager per phase -> :class:`ScalarSceneModel` (global model, block models, fusion)."""
 
     config: ScalarPipelineConfig
+    datamanager: ScalarDataManager
     model: ScalarSceneModel
 
     def __init__(
@@ -191,7 +193,7 @@ class ScalarPipeline(PipelineBase):
         super().__init__(config, test_mode=test_mode, world_size=world_size, local_rank=local_rank)
         if world_size > 1:
             raise NotImplementedError("scalar-nerf trains on one device; use scalar-nerf-block to spread blocks over machines")
-        self.datamanager: DataManager = config.datamanager.setup(device=device, test_mode=test_mode, world_size=1, local_rank=0)
+        self.datamanager = config.datamanager.setup(device=device, test_mode=test_mode, world_size=1, local_rank=0)
         self.datamanager.to(device)
         parsed = self.datamanager.train_dataparser_outputs
         self.plan: BlockPlan = self._block_plan(parsed)
@@ -380,8 +382,9 @@ class ScalarPipeline(PipelineBase):
             block = self.split.blocks[phase.block]
             CONSOLE.log(f"phase {phase.name}: loading its {len(block.image_indices)} training images")
             config = replace(self.config.datamanager, image_subset=tuple(block.image_indices))
-            self._block_datamanager = config.setup(device=self._device, test_mode="val", world_size=1, local_rank=0)
-            self._block_datamanager.to(self._device)
+            datamanager = config.setup(device=self._device, test_mode="val", world_size=1, local_rank=0)
+            self._block_datamanager = datamanager
+            datamanager.to(self._device)
             self._block_datamanager_index = phase.block
         assert self._block_datamanager is not None
         return self._block_datamanager
@@ -433,13 +436,8 @@ class ScalarPipeline(PipelineBase):
 
     def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
         """Before each step: update the occupancy grid of the phase's model (at its phase-local step)."""
-        return [
-            TrainingCallback(
-                where_to_run=[TrainingCallbackLocation.BEFORE_TRAIN_ITERATION],
-                update_every_num_iters=1,
-                func=self._before_train_step,
-            )
-        ]
+        return [TrainingCallback(where_to_run=[TrainingCallbackLocation.BEFORE_TRAIN_ITERATION],
+                                 update_every_num_iters=1, func=self._before_train_step)]
 
     def _before_train_step(self, step: int) -> None:
         phase = self._enter_phase(step)

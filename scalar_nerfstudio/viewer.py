@@ -134,12 +134,12 @@ class BlockOverlay(ViewerHook):
         self.remove()
         scene = self.viser_server.scene
         for block in self.split.blocks:
-            colour = tuple(int(255 * c) for c in block_colour(block.index))
+            red, green, blue = (int(255 * c) for c in block_colour(block.index))
             self.edge_handles[block.index] = [
                 scene.add_spline_catmull_rom(
                     f"{OVERLAY_NODE}/block_{block.index}/edge_{e}",
                     positions=(tuple(start * scale), tuple(end * scale)),
-                    color=colour, line_width=self.line_width, visible=self.visible,
+                    color=(red, green, blue), line_width=self.line_width, visible=self.visible,
                 )
                 for e, (start, end) in enumerate(box_edges(block.aabb_min, block.aabb_max))
             ]

@@ -132,7 +132,7 @@ def curve_table(specs: List[Dict[str, Any]], results: Dict[str, Dict[str, Any]])
         for budget in budgets:
             spec = next((s for s in specs if s["variant"] == variant and s["budget"] == budget), None)
             result = results.get(spec["name"]) if spec else None
-            if result is None:
+            if spec is None or result is None:
                 cells.append("not run")
                 continue
             final = result["final"]

@@ -49,19 +49,24 @@ def render_view(run_dir: Path, view: int) -> Dict[str, Any]:
     ([H, W, 3] float arrays in [0, 1]) and ``psnr`` (dB), ``fusion`` (the run's), ``views`` (held-out
     views of the scene). A run without config.yml, or a view out of range, is refused by name."""
     import torch
+    from nerfstudio.data.utils.dataloaders import FixedIndicesEvalDataloader
     from nerfstudio.utils.eval_utils import eval_setup
 
     config_path = Path(run_dir) / "config.yml"
     if not config_path.is_file():
         raise SystemExit(f"scalar-nerf-benchmark: no {config_path} to render the held-out view from")
     _, pipeline, _, _ = eval_setup(config_path, test_mode="test")
-    views = len(pipeline.datamanager.eval_dataset)
+    eval_dataset = pipeline.datamanager.eval_dataset
+    loader = getattr(pipeline.datamanager, "fixed_indices_eval_dataloader", None)
+    if eval_dataset is None or not isinstance(loader, FixedIndicesEvalDataloader):
+        raise SystemExit(f"scalar-nerf-benchmark: {run_dir}: its datamanager has no held-out views to render")
+    views = len(eval_dataset)
     if not 0 <= view < views:
         raise SystemExit(f"scalar-nerf-benchmark: --heldout-view {view}: the scene has {views} held-out views (0 to {views - 1})")
     model = pipeline.model
     model.eval()
     with torch.no_grad():
-        camera, batch = pipeline.datamanager.fixed_indices_eval_dataloader.get_camera(view)
+        camera, batch = loader.get_camera(view)
         outputs = model.get_outputs_for_camera(camera=camera)
         metrics, images = model.get_image_metrics_and_images(outputs, batch)
     rgb = outputs["rgb"].clamp(0, 1).float().cpu()  # [H, W, 3]

@@ -19,7 +19,7 @@ import sys
 import time
 from copy import deepcopy
 from pathlib import Path
-from typing import Any, Dict, List, Tuple
+from typing import TYPE_CHECKING, Any, Dict, List, Tuple, cast
 
 import torch
 
@@ -28,6 +28,11 @@ from scalar_nerfstudio.engine.device import resolve_machine
 from scalar_nerfstudio.engine.report import MIB, peak_memory_mib, tensor_bytes
 from scalar_nerfstudio.engine.timing import StepClock, time_train_iterations
 from scalar_nerfstudio.fusion import parse_fusion_mode
+
+if TYPE_CHECKING:
+    from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManagerConfig
+
+    from scalar_nerfstudio.models.scene_model import ScalarSceneModelConfig
 
 
 def _disable_lpips() -> None:
@@ -79,7 +84,8 @@ def trainer_config(spec: Dict[str, Any]):
 
         config = deepcopy(scalar_nerf.config)
     config.pipeline.datamanager.data = Path(spec["data"])
-    config.pipeline.datamanager.dataparser = NerfstudioDataParserConfig(
+    # nerfacto's (parallel) and scalar-nerf's datamanagers are both vanilla ones, with a dataparser
+    cast("VanillaDataManagerConfig", config.pipeline.datamanager).dataparser = NerfstudioDataParserConfig(
         downscale_factor=spec["downscale"], eval_mode="interval", eval_interval=8
     )
     config.vis = "tensorboard"
@@ -89,7 +95,7 @@ def trainer_config(spec: Dict[str, Any]):
     config.output_dir = Path(spec["output_dir"])
     if spec["method"] != "nerfacto" and spec.get("fusions"):
         # The run's own fusion (its curve and first result) is the first one listed, whatever the default.
-        config.pipeline.model.fusion = spec["fusions"][0]
+        cast("ScalarSceneModelConfig", config.pipeline.model).fusion = spec["fusions"][0]  # scalar-nerf's model
     for key, value in spec.get("overrides", {}).items():
         _set(config, key, value)
     return config

@@ -279,6 +279,8 @@ def auto_k(config: BenchmarkConfig, log2_t: int) -> int:
     from scalar_nerfstudio.data.datamanager import parsed_layout_scale
     from scalar_nerfstudio.pipeline import ScalarPipelineConfig
 
+    if config.data is None:  # set by the schedule (--data, or --quick's own scene) before any K is chosen
+        raise SystemExit("scalar-nerf-benchmark: no --data scene to choose the automatic K on")
     parsed = NerfstudioDataParserConfig(
         data=config.data, downscale_factor=config.downscale, eval_mode="interval", eval_interval=8
     ).setup().get_dataparser_outputs("train")

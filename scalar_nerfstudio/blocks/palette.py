@@ -21,4 +21,7 @@ GLOBAL_COLOUR = (0.35, 0.35, 0.35)
 
 def block_colour(index: int) -> Tuple[float, float, float]:
     """RGB in [0, 1] of block ``index`` (``-1``: the global model)."""
-    return GLOBAL_COLOUR if index < 0 else tuple(float(v) for v in BLOCK_PALETTE[index % len(BLOCK_PALETTE)])
+    if index < 0:
+        return GLOBAL_COLOUR
+    red, green, blue = BLOCK_PALETTE[index % len(BLOCK_PALETTE)]  # [3]
+    return float(red), float(green), float(blue)

@@ -216,7 +216,12 @@ def _kmeans_groups(centres: np.ndarray, num_blocks: int, seed: int) -> list[np.n
     else:
         from sklearn.cluster import KMeans  # here: importing scikit-learn takes seconds, and only a split needs it
 
-        kmeans = KMeans(n_clusters=k, n_init=KMEANS_N_INIT, random_state=seed, algorithm="lloyd")
+        kmeans = KMeans(
+            n_clusters=k,
+            n_init=KMEANS_N_INIT,  # pyright: ignore[reportArgumentType]  # sklearn: int | "auto", inferred str
+            random_state=seed,
+            algorithm="lloyd",
+        )
         labels = kmeans.fit_predict(centres)
     groups = [np.flatnonzero(labels == label) for label in np.unique(labels)]
     return sorted((g for g in groups if g.size > 0), key=lambda g: int(g[0]))

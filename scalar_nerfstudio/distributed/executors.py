@@ -219,6 +219,7 @@ class RayExecutor:
         import logging
 
         import ray
+        import ray.exceptions  # imported by ray itself; named here so that the type checker knows self._ray.exceptions
 
         self._ray = ray
         try:

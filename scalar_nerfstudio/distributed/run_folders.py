@@ -55,7 +55,7 @@ class GlobalRun:
     run_dir: Path
     num_blocks: int
     global_checkpoint: Path
-    block_steps: int
+    block_steps: Optional[int]
 
 
 def check_global_run(run: Path, blocks: Optional[Tuple[int, ...]], *, block_method: "ScalarBlockTrainerConfig") -> Tuple[GlobalRun, List[int]]:
@@ -72,7 +72,9 @@ def check_global_run(run: Path, blocks: Optional[Tuple[int, ...]], *, block_meth
         config.adopt_global_run()
     except RunError as error:
         raise TrainBlocksError(str(error)) from None
-    blocks_json = Path(config.pipeline.blocks_json)
+    pipeline = config.scalar_pipeline
+    assert pipeline.blocks_json is not None and pipeline.global_checkpoint is not None  # both set by adopt_global_run
+    blocks_json = Path(pipeline.blocks_json)
     num_blocks = load_blocks_json(blocks_json)[0].num_blocks
     chosen = list(range(num_blocks)) if blocks is None else list(dict.fromkeys(blocks))
     bad = [b for b in chosen if not 0 <= b < num_blocks]
@@ -81,7 +83,7 @@ def check_global_run(run: Path, blocks: Optional[Tuple[int, ...]], *, block_meth
     if not chosen:
         raise TrainBlocksError("--blocks: no block given")
     # adopt_global_run took the run's block steps, decoder mode and ray batch (all left at defaults here).
-    return GlobalRun(blocks_json.parent, num_blocks, Path(config.pipeline.global_checkpoint), config.pipeline.block_steps), chosen
+    return GlobalRun(blocks_json.parent, num_blocks, Path(pipeline.global_checkpoint), pipeline.block_steps), chosen
 
 
 def default_output_dir(global_dir: Path) -> Path:
@@ -140,7 +142,10 @@ class BlockState:
 
 def attempt_number(attempt_dir: Path) -> int:
     """``n`` of an ``attempt-n`` folder (or a set-aside one)."""
-    return int(ATTEMPT_PATTERN.match(attempt_dir.name).group(1))
+    match = ATTEMPT_PATTERN.match(attempt_dir.name)
+    if match is None:
+        raise ValueError(f"{attempt_dir} is not an attempt folder (attempt-N)")
+    return int(match.group(1))
 
 
 def _attempt_numbers(block_dir: Path) -> List[int]:
@@ -219,7 +224,7 @@ def done_runs(out: Path, global_checkpoint: Path) -> Dict[int, Path]:
     for block_dir in sorted(out.glob("block*")):
         match = BLOCK_FOLDER_PATTERN.fullmatch(block_dir.name)
         done, _ = read_done(block_dir, global_checkpoint) if match else (None, "")
-        if done is not None:
+        if match is not None and done is not None:
             runs[int(match.group(1))] = (block_dir / done["run"]).resolve()
     return runs
 

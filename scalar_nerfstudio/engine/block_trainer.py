@@ -10,6 +10,7 @@ from scalar_nerfstudio.blocks.length import TrainingLength
 from scalar_nerfstudio.blocks.plan import load_plan
 from scalar_nerfstudio.blocks.split import BlockSplitError, load_blocks_json
 from scalar_nerfstudio.engine.trainer import ScalarTrainerConfig
+from scalar_nerfstudio.pipeline import ScalarPipelineConfig
 from scalar_nerfstudio.runs import (
     RunError,
     RunSchemaError,
@@ -68,7 +69,7 @@ class ScalarBlockTrainerConfig(ScalarTrainerConfig):
             raise RunError(f"the global run {self.global_run}: no config.yml there (not a scalar-nerf run folder).") from None
         run_dir = config_path.parent
         global_pipeline = getattr(global_config, "pipeline", None)
-        if not hasattr(global_pipeline, "global_steps"):
+        if not isinstance(global_pipeline, ScalarPipelineConfig):
             raise RunError(f"{config_path} is not a scalar-nerf run.")
         blocks_json = blocks_json_path(run_dir)
         if not blocks_json.is_file():
@@ -89,7 +90,7 @@ class ScalarBlockTrainerConfig(ScalarTrainerConfig):
             raise RunError(str(error)) from None
         if not 0 <= self.block < num_blocks:
             raise RunError(f"--block {self.block} does not exist; {blocks_json} has blocks 0..{num_blocks - 1}.")
-        pipeline = self.pipeline
+        pipeline = self.scalar_pipeline
         pipeline.datamanager.data = global_pipeline.datamanager.data
         pipeline.datamanager.dataparser = global_pipeline.datamanager.dataparser
         pipeline.model = global_pipeline.model

@@ -33,6 +33,7 @@ from scalar_nerfstudio.engine.process_settings import apply_process_settings
 from scalar_nerfstudio.engine.report import format_report, scene_model_report, write_report
 from scalar_nerfstudio.engine.schedulers import WarmupExponentialDecaySchedulerConfig, retarget, warmup_steps_of
 from scalar_nerfstudio.engine.threads import ThreadGovernor
+from scalar_nerfstudio.pipeline import ScalarPipelineConfig
 from scalar_nerfstudio.runs import (
     RunError,
     blocks_json_path,
@@ -73,6 +74,14 @@ class ScalarTrainerConfig(TrainerConfig):
         written by an older version is upgraded first (``runs.upgrade_run_config``)."""
         self.__dict__.update(upgrade_run_config(state))
 
+    @property
+    def scalar_pipeline(self) -> ScalarPipelineConfig:
+        """``pipeline`` (nerfstudio types it as its base class), checked to be a :class:`ScalarPipelineConfig`."""
+        if not isinstance(self.pipeline, ScalarPipelineConfig):
+            raise TypeError(f"{type(self).__name__} needs a ScalarPipelineConfig pipeline, "
+                            f"not {type(self.pipeline).__name__}")
+        return self.pipeline
+
     def setup(self, **kwargs: Any) -> Any:
         """The trainer, built after the process-wide settings for its device (``engine/process_settings.py``)."""
         apply_process_settings(resolve_device_type(self.machine.device_type))
@@ -91,7 +100,7 @@ class ScalarTrainerConfig(TrainerConfig):
             self.output_dir = run_dir.parent.parent.parent
             self.experiment_name = run_dir.parent.parent.name
             self.timestamp = run_dir.name
-        if run_dir is not None and self.pipeline.run_plan is None:
+        if run_dir is not None and self.scalar_pipeline.run_plan is None:
             self._adopt_run_plan(run_dir)
         super().set_timestamp()
         self._check_output_dir()
@@ -101,21 +110,22 @@ class ScalarTrainerConfig(TrainerConfig):
         """Options, then the scene (every image decoded), then the options that depend on the scene
         (number of blocks vs training images, the block split): each ends in one paragraph, no traceback."""
         self._exit_on_option_error(check_options, self)
-        dataparser = self.pipeline.datamanager.dataparser
+        pipeline = self.scalar_pipeline
+        dataparser = pipeline.datamanager.dataparser
         if not isinstance(dataparser, NerfstudioDataParserConfig):
             return
-        data = Path(self.data if self.data is not None else getattr(self.pipeline.datamanager, "data", None) or dataparser.data)
+        data = Path(self.data if self.data is not None else getattr(pipeline.datamanager, "data", None) or dataparser.data)
         try:
             scene = scan_scene(data, eval_interval=dataparser.eval_interval, eval_mode=dataparser.eval_mode,
                                train_fraction=dataparser.train_split_fraction, downscale_factor=dataparser.downscale_factor)
         except SceneError as error:
             raise SystemExit(f"{self.method_name}: bad scene: {error}") from None
-        note = scene.conversion_note(self.pipeline.datamanager.alpha_background)
+        note = scene.conversion_note(pipeline.datamanager.alpha_background)
         if note is not None:
             CONSOLE.print(f"{self.method_name}: {note}", soft_wrap=True, markup=False, highlight=False)
-        self._exit_on_option_error(check_block_counts, self.pipeline, scene.num_train, scene.num_frames)
+        self._exit_on_option_error(check_block_counts, pipeline, scene.num_train, scene.num_frames)
         if self.load_dir is None:
-            self._exit_on_option_error(check_block_plan, self.pipeline, data)
+            self._exit_on_option_error(check_block_plan, pipeline, data)
 
     def _exit_on_option_error(self, check: Callable[..., None], *args: Any) -> None:
         try:
@@ -139,7 +149,7 @@ class ScalarTrainerConfig(TrainerConfig):
         except RunError as error:
             raise SystemExit(f"{self.method_name}: cannot resume {run_dir}: {error}") from None
         if recorded is not None:
-            self.pipeline.run_plan = blocks_json_path(run_dir).resolve()
+            self.scalar_pipeline.run_plan = blocks_json_path(run_dir).resolve()
 
     def _resumed_run_dir(self) -> Optional[Path]:
         if self.load_dir is None:
@@ -216,10 +226,11 @@ class ScalarTrainer(TrainerBase):
         plan was measured), so that every later load of the run builds the model that was trained (K, split,
         block capacities) and trains the steps it planned."""
         path = blocks_json_path(self.base_dir)
-        if not again and self.config.pipeline.run_plan is not None and Path(self.config.pipeline.run_plan).resolve() == path.resolve():
+        run_plan = self.config.scalar_pipeline.run_plan
+        if not again and run_plan is not None and Path(run_plan).resolve() == path.resolve():
             return
         save_plan(pipeline.plan, path)
-        self.config.pipeline.run_plan = path.resolve()
+        self.config.scalar_pipeline.run_plan = path.resolve()
         save_run_config(self.config, self.base_dir)
 
     def setup_optimizers(self) -> Optimizers:
@@ -232,8 +243,8 @@ class ScalarTrainer(TrainerBase):
         one model it is held and then restarts at the rate of the group's :data:`RESTART_TEMPLATES`
         template (``global_restart_fraction``, ``--pipeline.one-model-restart``).
         """
-        pipeline = self.phased_pipeline
-        param_groups = pipeline.get_param_groups()
+        _ = self.phased_pipeline  # checked against the contract before nerfstudio's groups are read
+        param_groups = self.pipeline.get_param_groups()
         config: Dict[str, Any] = {}
         self._schedules = {}
         for group in param_groups:
@@ -368,7 +379,7 @@ class ScalarTrainer(TrainerBase):
     def _report_models(self) -> None:
         """Print and save (model_report.json) every model's parameters, table size and memory."""
         pipeline = self.phased_pipeline
-        report = scene_model_report(pipeline.model, self.optimizers.optimizers.values(), self.device)
+        report = scene_model_report(self.pipeline.model, self.optimizers.optimizers.values(), self.device)
         path = report_path(self.base_dir)
         write_report(report, path, {"auto_num_blocks": pipeline.plan.auto_num_blocks})
         CONSOLE.print(format_report(report))

@@ -15,7 +15,7 @@ up to the order of the sums.
 from __future__ import annotations
 
 import functools
-from typing import Literal, Optional
+from typing import Literal, Optional, cast
 
 import torch
 from torch import Tensor, nn
@@ -136,7 +136,8 @@ def mlp_float32_inference(mlp: nn.Sequential, inputs: Tensor, isa: Optional[Floa
         RuntimeError and TypeError as :func:`fused_mlp_float32`.
     """
     isa, relu, params = _checked_arguments("mlp_float32_inference", mlp, inputs, isa)
-    weights, biases = params[0::2], params[1::2]
+    # mlp_arguments: the weights (even entries) are never None, only biases may be
+    weights, biases = [cast(Tensor, w) for w in params[0::2]], params[1::2]
     packed = [pack_weights_float32(w)[0] for w in weights]
     padded_biases = [padded_bias(b, w.shape[0], w, multiple=_WIDTH_MULTIPLE) for w, b in zip(weights, biases)]
     with torch.no_grad():

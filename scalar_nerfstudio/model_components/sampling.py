@@ -142,6 +142,15 @@ class OccupancyGrid(nn.Module):
             :meth:`refresh`, whose estimates are already the largest density at the cell's corners.
     """
 
+    density_ema: Tensor
+    """[G^3] float32 density estimate per cell (1 / world unit; inf: never evaluated)."""
+    occupied: Tensor
+    """[G^3] bool: cells marked occupied."""
+    cell_sizes: Tensor
+    """[G^3] world-space edge length of each cell (not saved)."""
+    seeded: Tensor
+    """[] bool: the grid was seeded from known densities (not saved)."""
+
     def __init__(
         self,
         *,

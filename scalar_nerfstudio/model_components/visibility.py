@@ -36,9 +36,11 @@ class DensityField(Protocol):
 
     def encoder(self, unit_positions: Tensor) -> Tensor:
         """[M, 3] unit-cube positions -> [M, L*F] encoding."""
+        ...
 
     def density_at_unit(self, unit_positions: Tensor, encoding: Optional[Tensor] = None) -> Tuple[Tensor, Tensor]:
         """[M, 3] unit-cube positions (and their encoding, if known) -> ([M] density, [M, F] geometry features)."""
+        ...
 
 
 @dataclass(frozen=True, eq=False)

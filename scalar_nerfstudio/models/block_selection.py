@@ -47,7 +47,8 @@ def blocks_for(mode: ParsedFusionMode, started: Sequence[int]) -> List[int]:
     if mode.kind == "global-only":
         return []
     if mode.kind == "block":
-        return [mode.block_index] if mode.block_index in started else []
+        index = mode.block_index  # set for every "block" mode (parse_fusion_mode)
+        return [index] if index is not None and index in started else []
     return list(started)
 
 

@@ -15,7 +15,7 @@ state-dict keys stay the owner's ``blocks.<k>.*``) and is told which blocks have
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Collection, Dict, Iterable, Optional, Set, Tuple
+from typing import Any, Collection, Dict, Iterable, Optional, Set, Tuple, cast
 
 from torch import Tensor, nn
 
@@ -64,6 +64,10 @@ class BlockStore:
         release_tensors(model)
         self.blocks[str(block)] = model
 
+    def shell(self, block: int) -> ScalarModel:
+        """Block ``block``'s model as :attr:`blocks` holds it (its tensors empty unless it is resident)."""
+        return cast(ScalarModel, self.blocks[str(block)])  # only add_shell fills blocks, with ScalarModels
+
     def attach(self, directory: Path) -> None:
         """Keep finished blocks in ``directory`` (the run's ``block_models/``) and load them from there."""
         self.directory = Path(directory)
@@ -87,7 +91,7 @@ class BlockStore:
     def install(self, block: int, state: Dict[str, Tensor], *, what: str, evictable: bool) -> None:
         """Give block ``block``'s model the weights ``state`` (its own state-dict keys; ``what`` names
         where they come from in errors); then release the least recently used loaded blocks over the limit."""
-        model = self.blocks[str(block)]
+        model = self.shell(block)
         install_tensors(model, model.complete_state(dict(state)), specs=self.specs[block], what=what)
         self.resident.add(block, evictable)
         for other in self.resident.over_limit(keep=block):
@@ -125,7 +129,7 @@ class BlockStore:
             self.install(block, load_block_file(path, block), what=f"block {block} from {path}", evictable=True)
         else:
             raise RuntimeError(f"block {block} has no weights: it has not started training")
-        return self.blocks[str(block)]
+        return self.shell(block)
 
     def empty_stored(self, state: Dict[str, Any], prefix: str = "") -> Dict[str, Any]:
         """``state`` (the owner's state dict, keys under ``prefix``) with the tensors of the blocks kept

@@ -163,6 +163,10 @@ class ScalarModel(NormalsOutput, Model):
     """
 
     config: ScalarModelConfig
+    region_centre: Tensor
+    """[3] float32 world point mapped to the origin before contraction (buffer, not saved)."""
+    render_occupancy_ready: Tensor
+    """[] bool: whether ``render_occupancy`` holds the final field's estimates (buffer, saved)."""
 
     def populate_modules(self) -> None:
         """Build the field, the occupancy grid and the metrics (called by ``Model.__init__``)."""

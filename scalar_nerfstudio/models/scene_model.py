@@ -142,6 +142,14 @@ class ScalarSceneModel(NormalsOutput, Model):
     """
 
     config: ScalarSceneModelConfig
+    blocks_started: Tensor
+    """[K] bool: which blocks have started training (buffer, saved in checkpoints)."""
+    block_centres: Tensor
+    """[K, 3] float32 the blocks' centres (buffer, not saved)."""
+    block_radii: Tensor
+    """[K] float32 the blocks' region radii (buffer, not saved)."""
+    block_observation: Optional[Tensor]
+    """[K, G^3] bool: the cells each block's cameras observe; None: not known (buffer, not saved)."""
 
     def populate_modules(self) -> None:
         """Build the global model and the block models (their colliders are their own, as
@@ -276,7 +284,7 @@ class ScalarSceneModel(NormalsOutput, Model):
             return self.global_model
         if str(block) not in self.blocks:
             raise KeyError(f"block {block} is not held by this model (it holds {list(self.block_ids)})")
-        return self.resident_block(block) if bool(self.blocks_started[block]) else self.blocks[str(block)]
+        return self.resident_block(block) if bool(self.blocks_started[block]) else self.store.shell(block)
 
     @torch.no_grad()
     def begin_block(self, block: int) -> Optional[EncodingFit]:
@@ -290,7 +298,7 @@ class ScalarSceneModel(NormalsOutput, Model):
         fresh = self._new_block_model(block).to(self.blocks_started.device)
         self.store.install(block, fresh.state_dict(), what=f"block {block} (fresh)", evictable=False)
         del fresh
-        model = self.blocks[str(block)]
+        model = self.store.shell(block)
         images = self.split.blocks[block].image_indices
         start_block(model, self.global_model, image_indices=images, decoder_mode=self.decoder_mode, block_init=self.block_init,
                     seed_occupancy=self.config.seed_block_occupancy)
@@ -318,7 +326,7 @@ class ScalarSceneModel(NormalsOutput, Model):
         :meth:`get_param_groups` order."""
         groups = [(ParamGroup(None, part), params) for part, params in self.global_model.get_param_groups().items()]
         for index in self.block_ids:
-            groups += [(ParamGroup(index, part), params) for part, params in self.blocks[str(index)].get_param_groups().items()]
+            groups += [(ParamGroup(index, part), params) for part, params in self.store.shell(index).get_param_groups().items()]
         return groups
 
     # --------------------------------------------------------------------------- rendering
@@ -349,7 +357,7 @@ class ScalarSceneModel(NormalsOutput, Model):
             observed_blocks_only=config.observed_blocks_only,
         )
         return FusedRenderer(
-            self.global_model, block_model=self.resident_block, block_shell=lambda block: self.blocks[str(block)], settings=settings,
+            self.global_model, block_model=self.resident_block, block_shell=self.store.shell, settings=settings,
             regions=BlockRegions(self.block_centres, self.block_radii, self.block_observation),
             rendered_models=self.rendered_models, rays_rendered_by_block=self.rays_rendered_by_block,
         )

@@ -44,9 +44,15 @@ class CaptureFrame:
     note: str = ""
     """How up was found, and why GPS was not (fully) used."""
 
+    def _gps_origin(self) -> np.ndarray:
+        """[3] ``gps_origin``, which the ``enu`` kinds have."""
+        if self.gps_origin is None:
+            raise ValueError(f"a {self.kind!r} capture frame needs its gps_origin")
+        return self.gps_origin
+
     def describe(self) -> str:
         if self.kind in ("enu", "enu-level"):
-            lat, lon, alt = self.gps_origin
+            lat, lon, alt = self._gps_origin()
             where = "horizontal " if self.kind == "enu-level" else ""
             text = (
                 f"metres, east-north-up about the photos' mean GPS position ({lat:.7f}, {lon:.7f}, {alt:.1f} m); "
@@ -59,7 +65,7 @@ class CaptureFrame:
     def to_json(self) -> dict:
         out = {"kind": self.kind, "scene_from_colmap": self.scene_from_colmap.matrix().tolist(), "units": "m" if self.kind != "up" else "colmap"}
         if self.kind != "up":
-            out.update(gps_origin_lat_lon_alt=[float(v) for v in self.gps_origin], gps_rms_m=self.gps_rms_m, gps_used=self.gps_used)
+            out.update(gps_origin_lat_lon_alt=[float(v) for v in self._gps_origin()], gps_rms_m=self.gps_rms_m, gps_used=self.gps_used)
         if self.note:
             out["note"] = self.note
         return out

@@ -19,7 +19,7 @@ import shutil
 import threading
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Dict, List, NamedTuple, Optional, Tuple
+from typing import Callable, Dict, List, NamedTuple, Optional, Tuple, TypeVar
 
 import numpy as np
 import pycolmap
@@ -42,6 +42,7 @@ MAPPERS = ("auto", "incremental", "global", "hierarchical")
 GLOBAL_MIN_PHOTOS = 300
 _CAMERA_MODEL = "OPENCV"  # fx, fy, cx, cy, k1, k2, p1, p2: what nerfstudio's OPENCV camera reads
 _EXTRACT_CHUNK = 8  # photos per extraction call (the progress bar's step)
+T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -168,7 +169,7 @@ def open_workspace(colmap_dir: Path, photos: PhotoSet, options: SfmOptions) -> t
     return workspace, stages
 
 
-def _run_in_thread(function: Callable[[], object], tick: Optional[Callable[[], None]] = None) -> object:
+def _run_in_thread(function: Callable[[], T], tick: Optional[Callable[[], None]] = None) -> T:
     """Run a long pycolmap call (it releases the GIL) while ``tick`` keeps a spinner alive."""
     result: dict = {}
 
@@ -186,7 +187,7 @@ def _run_in_thread(function: Callable[[], object], tick: Optional[Callable[[], N
             tick()
     if "error" in result:
         raise result["error"]
-    return result.get("value")
+    return result["value"]  # the thread ended without an error: it set the value
 
 
 def _image_cameras(workspace: Workspace) -> Tuple[Dict[str, int], set]:
@@ -285,7 +286,7 @@ def _mapping_call(mapper: str, workspace: Workspace, photos: PhotoSet, scratch: 
         mapping.num_threads = options.num_threads
         mapping.random_seed = options.seed
         return lambda: pycolmap.incremental_mapping(
-            workspace.database, photos.folder, scratch, options=mapping, next_image_callback=on_image,
+            workspace.database, photos.folder, scratch, options=mapping, next_image_callback=lambda: on_image(1),
             initial_image_pair_callback=lambda: on_image(2),
         )
     if mapper == "global":

@@ -77,7 +77,11 @@ def check_arguments(args: EvalFusionArgs) -> None:
 def evaluate(args: EvalFusionArgs) -> Dict[str, Dict[str, float]]:
     """Run the table; returns ``{mode: {"psnr", "ssim", ["lpips"], "ms_per_image", ...}}``."""
     check_arguments(args)
+    from scalar_nerfstudio.pipeline import ScalarPipeline  # here: loading the run imports it anyway
+
     _, pipeline, _, _ = eval_setup(args.load_config, test_mode="test")
+    if not isinstance(pipeline, ScalarPipeline):
+        raise SystemExit(f"{PROG}: {args.load_config}: its pipeline is a {type(pipeline).__name__}, not scalar-nerf's")
     if args.blocks_per_ray is not None:
         pipeline.model.config.blocks_per_ray = args.blocks_per_ray
     if args.selection_depth is not None:

@@ -103,8 +103,14 @@ def _stage(progress: Progress, description: str, total: Optional[int]):
     return task, (lambda n=1: progress.advance(task, n)), progress.refresh
 
 
+def _missing_pycolmap() -> str:
+    return f"pycolmap is not installed ({_IMPORT_ERROR}); install it with: pip install \"scalar-nerfstudio[process]\""
+
+
 def run(args: argparse.Namespace, err: Console) -> int:
     """The stages (progress bars on ``err``, the summary on stdout); raises ProcessDataError for bad input."""
+    if sfm is None:  # main() says so first; a direct call is told the same
+        raise ProcessDataError(_missing_pycolmap())
     started = time.monotonic()
     workers = (os.cpu_count() or 1) if args.threads < 1 else args.threads
     if not args.images.is_dir():
@@ -222,7 +228,7 @@ def _report(photos: PhotoSet, model, frame: align.CaptureFrame, *, mapper: str, 
 def main(argv: Optional[List[str]] = None) -> int:
     args = build_parser().parse_args(argv)
     if sfm is None:
-        print(f"{PROG}: error: pycolmap is not installed ({_IMPORT_ERROR}); install it with: pip install \"scalar-nerfstudio[process]\"", file=sys.stderr)
+        print(f"{PROG}: error: {_missing_pycolmap()}", file=sys.stderr)
         return 1
     try:
         return run(args, Console(stderr=True))

@@ -101,11 +101,15 @@ def check_args(args: TrainBlocksArgs, extra: List[str]) -> None:
 def train_blocks(args: TrainBlocksArgs, extra: List[str]) -> int:
     """The command; returns its exit status."""
     check_args(args, extra)
+    from scalar_nerfstudio.engine.block_trainer import ScalarBlockTrainerConfig
     from scalar_nerfstudio.method_configs import (
         scalar_nerf_block,  # the whole method: imported once the options are read
     )
 
-    global_run, blocks = check_global_run(args.global_run, args.blocks, block_method=scalar_nerf_block.config)
+    block_method = scalar_nerf_block.config
+    if not isinstance(block_method, ScalarBlockTrainerConfig):
+        raise TypeError(f"scalar-nerf-block's config is {type(block_method).__name__}, not a ScalarBlockTrainerConfig")
+    global_run, blocks = check_global_run(args.global_run, args.blocks, block_method=block_method)
     global_dir = global_run.run_dir = global_run.run_dir.resolve()
     out = (args.output_dir if args.output_dir is not None else default_output_dir(global_dir)).resolve()
     out.mkdir(parents=True, exist_ok=True)

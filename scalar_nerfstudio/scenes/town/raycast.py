@@ -49,16 +49,18 @@ def _slab(origins: np.ndarray, inverse: np.ndarray, lo: np.ndarray, hi: np.ndarr
 
     One axis at a time on [P, M] arrays (no reductions over a length-3 axis, which numpy does slowly).
     """
-    near = far = None
-    for k in range(3):
+
+    def axis(k: int) -> Tuple[np.ndarray, np.ndarray]:
+        """[P, M] entry and exit t of the slabs along axis ``k``."""
         t0 = (lo[None, :, k] - origins[:, None, k]) * inverse[:, None, k]
         t1 = (hi[None, :, k] - origins[:, None, k]) * inverse[:, None, k]
-        lower, upper = np.minimum(t0, t1), np.maximum(t0, t1)
-        if near is None:
-            near, far = lower, upper
-        else:
-            np.maximum(near, lower, out=near)
-            np.minimum(far, upper, out=far)
+        return np.minimum(t0, t1), np.maximum(t0, t1)
+
+    near, far = axis(0)
+    for k in (1, 2):
+        lower, upper = axis(k)
+        np.maximum(near, lower, out=near)
+        np.minimum(far, upper, out=far)
     return near, far
 
 

@@ -88,7 +88,7 @@ class _Progress:
     """A progress bar over ``total`` frames: rich, else tqdm, else nothing."""
 
     def __init__(self, total: int, description: str, enabled: bool) -> None:
-        self._advance: Callable[[int], None] = lambda n: None
+        self._advance: Callable[[int], object] = lambda n: None  # what it returns (tqdm's update: a bool) is unused
         self._close: Callable[[], None] = lambda: None
         if not enabled:
             return
