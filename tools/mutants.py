@@ -53,6 +53,10 @@ GUARD_TESTS = node_ids(
 BLOCK_COPY = node_ids("block_selection", "test_a_block_started_from_the_global_model_renders_as_the_global_model")
 SURFACE_SCENE = "test_surface_rule_renders_one_block_per_ray_and_matches_rendering_every_block"
 NEAREST_IDW_SCENE = "test_nearest_idw_renders_the_two_nearest_blocks_per_ray_and_matches_blending_every_block"
+STORY = node_ids(
+    "method_story", "test_the_default_fusion_beats_its_own_global_model",
+    "test_the_fused_images_are_the_blocks_not_the_global_models",
+)
 SELECT_RAYS = "test_select_rays_reads_the_global_depth_only_for_the_rules_that_need_it"
 
 MUTANTS: Tuple[Mutant, ...] = (
@@ -219,6 +223,20 @@ MUTANTS: Tuple[Mutant, ...] = (
         old="position_to_id[weights_winner(weights) + 1]", new="position_to_id[weights_winner(weights)]",
         why="block_winner (the winner map, the viewer's block colours) names the wrong block",
         tests=node_ids("block_selection", SURFACE_SCENE, NEAREST_IDW_SCENE),
+    ),
+    Mutant(
+        name="fusion-renders-global-for-blocks", path=MODELS + "fused_render.py",
+        old="return self._render_subset(self.block_model(block), ray_bundle, rays, normals, block)",
+        new="return self._render_subset(self.global_model, ray_bundle, rays, normals, block)",
+        why="the fused renderer draws the global model where a block was chosen: the blocks' training never shows",
+        tests=STORY, slow=True,
+    ),
+    # ------------------------------------------------------------------------------------------ the block phase
+    Mutant(
+        name="block-table-not-trained", path="scalar_nerfstudio/method_configs.py",
+        old='"block_encoder": _adam(4e-2),', new='"block_encoder": _adam(0.0),',
+        why="a block's hash table is never updated (learning rate 0): blocks learn only through their decoder",
+        tests=STORY, slow=True,
     ),
     # ------------------------------------------------------------------------------------------ rendering, sampling
     Mutant(

@@ -8,7 +8,8 @@ claim to cover that part. For each mutant, one at a time, the script
 
 1. refuses to run if the file has uncommitted changes (``git diff --quiet HEAD -- FILE``);
 2. writes the mutated file atomically (the snippet ``old`` must occur exactly once);
-3. runs ``python -m pytest -q -x -p no:cacheprovider -m "not slow"`` on the mutant's tests (900 s at most);
+3. runs ``python -m pytest -q -x -p no:cacheprovider -m "not slow"`` on the mutant's tests (without ``-m "not slow"``
+   for a ``slow`` mutant; 900 s at most);
 4. always restores the original bytes and modification time (also on Ctrl-C or SIGTERM) and checks with git
    that the file is back to its committed content.
 
