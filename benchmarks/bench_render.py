@@ -36,7 +36,7 @@ def main() -> None:
     parser.add_argument("--json", type=Path, default=None)
     parser.add_argument("--model-setting", nargs="+", default=[], metavar="NAME=VALUE",
                         help="model config settings to compare, each a variant (e.g. grid_alpha_skip=False grid_alpha_skip=True)")
-    parser.add_argument("--size", type=_parse_size, default=None, metavar="WxH", help="render the eval poses at this size (e.g. 800x600)")
+    parser.add_argument("--size", type=parse_size, default=None, metavar="WxH", help="render the eval poses at this size (e.g. 800x600)")
     args = parser.parse_args()
 
     import torch
@@ -93,7 +93,7 @@ def main() -> None:
         args.json.write_text(json.dumps({"config": str(args.load_config), "device": device, "rounds": args.rounds, "results": results}, indent=2))
 
 
-def _parse_size(text: str) -> Tuple[int, int]:
+def parse_size(text: str) -> Tuple[int, int]:
     """"800x600" -> (800, 600)."""
     width, separator, height = text.lower().partition("x")
     if not separator or not width.isdigit() or not height.isdigit() or int(width) < 1 or int(height) < 1:

@@ -23,18 +23,19 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import Dict, List, Tuple
+from typing import Any, Dict, List, Tuple
 
 import numpy as np
+from bench_render import parse_size  # WIDTHxHEIGHT, as bench_render.py takes it (same directory)
 
 
-def camera_path(poses: np.ndarray, fov_deg: float, *, frames: int, width: int, height: int) -> Dict[str, object]:
+def camera_path(poses: np.ndarray, fov_deg: float, *, frames: int, width: int, height: int) -> Dict[str, Any]:
     """A nerfstudio camera path (the viewer's Render tab format) of ``frames`` poses along ``poses`` [N, 3, 4]
     (camera-to-world in the dataparser's frame, OpenGL axes): positions interpolated linearly along the
     sequence, each frame taking the rotation of the nearer camera."""
     if frames < 1 or len(poses) < 1:
         raise ValueError(f"need at least one frame and one camera, got {frames} frames and {len(poses)} cameras")
-    path: List[Dict[str, object]] = []
+    path: List[Dict[str, Any]] = []
     for t in np.linspace(0.0, len(poses) - 1.0, frames):
         i = min(int(math.floor(t)), len(poses) - 1)
         j = min(i + 1, len(poses) - 1)
@@ -59,7 +60,7 @@ def training_poses(config: Path) -> Tuple[np.ndarray, float]:
     return poses, fov
 
 
-def timed_render(config: Path, path: Dict[str, object], folder: Path) -> float:
+def timed_render(config: Path, path: Dict[str, Any], folder: Path) -> float:
     """Seconds of ``ns-render camera-path`` on ``path``, writing PNG frames into ``folder``."""
     folder.mkdir(parents=True, exist_ok=True)
     path_file = folder / "camera_path.json"
@@ -73,7 +74,7 @@ def timed_render(config: Path, path: Dict[str, object], folder: Path) -> float:
     if result.returncode != 0:
         sys.exit(f"ns-render failed ({result.returncode}):\n{result.stdout[-2000:]}\n{result.stderr[-2000:]}")
     written = len(list((folder / "frames").glob("*.png")))
-    frames = len(path["camera_path"])  # type: ignore[arg-type]  # a list, built by camera_path()
+    frames = len(path["camera_path"])
     if written != frames:
         sys.exit(f"ns-render wrote {written} frames, the path has {frames}")
     return seconds
@@ -84,12 +85,14 @@ def main() -> None:
     parser.add_argument("--load-config", type=Path, required=True, help="RUN/config.yml of a trained scalar-nerf run")
     parser.add_argument("--frames", type=int, default=100, help="frames of the timed path (default 100)")
     parser.add_argument("--video-frames", type=int, default=100, help="frames of the video whose time is stated (default 100)")
-    parser.add_argument("--size", default="1280x720", help="frame size WxH (default 1280x720)")
+    parser.add_argument("--size", type=parse_size, default=(1280, 720), metavar="WxH", help="frame size (default 1280x720)")
     parser.add_argument("--json", type=Path, default=None, help="also write the figures here")
     args = parser.parse_args()
     from scalar_nerfstudio.benchmarking.machine import describe_cpu
 
-    width, height = (int(v) for v in args.size.lower().split("x"))
+    width, height = args.size
+    if not args.load_config.is_file():
+        parser.error(f"--load-config {args.load_config}: no such file (a trained run's config.yml)")
     if args.frames < 2 or args.video_frames < 1:
         parser.error("--frames must be at least 2 (one frame is the start-up baseline) and --video-frames at least 1")
 
