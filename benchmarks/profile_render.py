@@ -10,10 +10,13 @@ pixel, the sample funnel per pixel (bins -> grid candidates -> density evaluatio
 - ``--decoder fused|onednn``: the float32 decoder without autograd through the AVX2 tile kernels or
   through oneDNN layer by layer (the decoder's ``float32_cpu_inference``; bfloat16 decoders ignore it);
 - ``--chunk N``: rays per chunk;
+- ``--march kernels|torch``: the rounds' bookkeeping and the volume rendering through the C++ march kernels
+  (``csrc/march.cpp``) or through the torch code they replaced (the code before them, in the same run);
 - ``--baseline-ref REF`` adds ``baseline``: the visibility pass of the commit REF (read with ``git show``)
   with the oneDNN decoder: the code before the cuts, timed in the same run.
 
     python benchmarks/profile_render.py --load-config RUN/config.yml --baseline-ref a7fb8f9 --group 4 --decoder fused onednn
+    python benchmarks/profile_render.py --load-config RUN/config.yml --march torch kernels --rounds 5
     python benchmarks/profile_render.py --load-config RUN/config.yml --size 2000x1500 --rounds 1 --profile
 """
 
@@ -61,8 +64,7 @@ def install_probes() -> None:
     wrap(VisibilitySampler, "visible_with_features", "visibility (rounds, with the density)")
     wrap(scalar_model.ScalarModel, "_ray_samples", "sampling")
     wrap(scalar_model.ScalarModel, "render_rays", "one model's render")
-    for name in ("render_weights", "composite", "render_depth"):  # module globals used by get_outputs
-        wrap(scalar_model, name, f"volume.{name}")
+    wrap(scalar_model, "render_kept_samples", "volume rendering")  # a module global used by get_outputs
     wrap(FusedRenderer, "render", "fused render (all models, fusion)")
     wrap(FusedRenderer, "select_rays", "block selection")
     wrap(FusedRenderer, "_guard_transparent_blocks", "guard (the global model's rays)")
@@ -93,6 +95,8 @@ def main() -> None:
     parser.add_argument("--group", type=int, nargs="+", default=[4], help="candidates per ray per round")
     parser.add_argument("--decoder", nargs="+", choices=["fused", "onednn"], default=["fused"])
     parser.add_argument("--chunk", type=int, nargs="+", default=[None], help="rays per chunk (default: the run's)")
+    parser.add_argument("--march", nargs="+", choices=["kernels", "torch"], default=["kernels"],
+                        help="the render march through the C++ kernels or the torch code (the first listed is the reference image)")
     parser.add_argument("--baseline-ref", default=None, help="add the variant of this commit's visibility pass with the oneDNN decoder")
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--profile", action="store_true", help="torch.profiler table of one render of the first variant")
@@ -102,6 +106,7 @@ def main() -> None:
     from bench_render import _resized  # same directory
     from nerfstudio.utils.eval_utils import eval_setup
 
+    from scalar_nerfstudio.encodings import _cpp
     from scalar_nerfstudio.fields.scalar_field import Decoder
     from scalar_nerfstudio.model_components import visibility
 
@@ -121,13 +126,15 @@ def main() -> None:
     variants: List[Dict[str, Any]] = []
     if args.baseline_ref:
         variants.append({"name": f"baseline {args.baseline_ref}", "pass": baseline_visibility(args.baseline_ref), "group": None,
-                         "decoder": "onednn", "chunk": args.chunk[0]})
-    for group, decoder, chunk in itertools.product(args.group, args.decoder, args.chunk):
-        variants.append({"name": f"group {group} decoder {decoder} chunk {chunk or chunk_default}", "pass": current, "group": group,
-                         "decoder": decoder, "chunk": chunk})
+                         "decoder": "onednn", "chunk": args.chunk[0], "march": "torch"})
+    for march, group, decoder, chunk in itertools.product(args.march, args.group, args.decoder, args.chunk):
+        variants.append({"name": f"march {march} group {group} decoder {decoder} chunk {chunk or chunk_default}", "pass": current,
+                         "group": group, "decoder": decoder, "chunk": chunk, "march": march})
+    march_ops = _cpp.march_ops
 
     def render(variant: Dict[str, Any]) -> torch.Tensor:
         visibility.VisibilitySampler.visible_with_features = variant["pass"]
+        _cpp.march_ops = march_ops if variant["march"] == "kernels" else (lambda: None)
         if variant["group"] is not None:
             visibility.RENDER_GROUP = variant["group"]
         for module in model.modules():
@@ -158,7 +165,7 @@ def main() -> None:
         per_px = {k: v / pixels for k, v in funnels[name].items()}
         diff = int((to_8bit(images[name]) - to_8bit(first)).abs().max())
         rows.append({"variant": name, "median_s": median, "us_per_px": 1e6 * median / pixels, "per_px": per_px, "max_8bit_diff": diff})
-        print(f"{name:<40} {median:7.3f} s {1e6 * median / pixels:7.2f} us/px ({median / statistics.median(times[variants[0]['name']]):.2f}x the first); "
+        print(f"{name:<55} {median:7.3f} s {1e6 * median / pixels:7.2f} us/px ({median / statistics.median(times[variants[0]['name']]):.2f}x the first); "
               f"per px: candidates {per_px.get('candidates', 0):.2f}, density evals {per_px.get('density_evals', 0):.2f}, "
               f"colour {per_px.get('colour_evals', 0):.2f}; max 8-bit diff vs the first {diff}")
     if args.json is not None:

@@ -1,6 +1,7 @@
 """Rays per chunk of a camera render (eval, ns-render, the viewer), by the device it renders on.
 
-A CPU render is bound by arithmetic, so chunks of 2^14 rays keep both cores busy and its memory small.
+A CPU render is bound by arithmetic; chunks of 2^16 rays keep both cores busy with few per-chunk passes
+(2^16 rendered a view in 0.86-0.90x the time of 2^14, 2^17 no faster; docs/results.md) at a few hundred MiB.
 A CUDA render of small chunks is bound by the CPU's kernel launches (hundreds per chunk, the GPU idle
 between them): larger chunks are what let a GPU work. The model config leaves the size at None ("by
 device"); an explicit ``eval_num_rays_per_chunk`` wins. docs/results.md gives the measurements.
@@ -13,7 +14,7 @@ from typing import Dict, Optional, Union
 import torch
 
 #: Rays per chunk of a camera render when ``eval_num_rays_per_chunk`` is left out.
-RENDER_RAYS_PER_CHUNK: Dict[str, int] = {"cpu": 1 << 14, "cuda": 1 << 18}
+RENDER_RAYS_PER_CHUNK: Dict[str, int] = {"cpu": 1 << 16, "cuda": 1 << 18}
 
 
 def render_rays_per_chunk(configured: Optional[int], device: Union[torch.device, str]) -> int:

@@ -15,9 +15,9 @@ from scalar_nerfstudio.method_configs import scalar_nerf
 
 
 def test_the_render_chunk_follows_the_device_unless_set() -> None:
-    assert render_rays_per_chunk(None, "cpu") == RENDER_RAYS_PER_CHUNK["cpu"] == 1 << 14, "the CPU's chunk is unchanged"
+    assert render_rays_per_chunk(None, "cpu") == RENDER_RAYS_PER_CHUNK["cpu"] == 1 << 16, "the CPU's chunk is unchanged"
     assert render_rays_per_chunk(None, torch.device("cuda", 1)) == RENDER_RAYS_PER_CHUNK["cuda"] > RENDER_RAYS_PER_CHUNK["cpu"]
-    assert render_rays_per_chunk(None, "mps") == 1 << 14, "another device gets the CPU's size"
+    assert render_rays_per_chunk(None, "mps") == 1 << 16, "another device gets the CPU's size"
     assert render_rays_per_chunk(1000, "cuda") == 1000 and render_rays_per_chunk(512, "cpu") == 512
 
 

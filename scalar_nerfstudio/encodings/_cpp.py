@@ -1,12 +1,13 @@
 """Lazy, once-per-process JIT builds of the C++/OpenMP CPU kernels and the CUDA hash grid.
 
-The CPU kernels (``scalar_nerfstudio/csrc/hash_grid.cpp``, ``csrc/sampling.cpp``, ``csrc/mlp.cpp`` and
-``csrc/mlp_f32.cpp``) are compiled
+The CPU kernels (``scalar_nerfstudio/csrc/hash_grid.cpp``, ``csrc/sampling.cpp``, ``csrc/march.cpp``,
+``csrc/mlp.cpp`` and ``csrc/mlp_f32.cpp``) are compiled
 into one extension with :func:`torch.utils.cpp_extension.load` on first use (~20 s; cached
 afterwards in torch's extension directory, ``$TORCH_EXTENSIONS_DIR`` or
 ``~/.cache/torch_extensions``). It registers the ops ``torch.ops.scalar_nerf_hash_grid.forward``
 and ``.backward`` (the hash grid), and ``torch.ops.scalar_nerf_sampling.unit_positions`` and
-``.worth_evaluating`` (ray samples and the occupancy test), and ``torch.ops.scalar_nerf_mlp.forward``,
+``.worth_evaluating`` (ray samples and the occupancy test), ``torch.ops.scalar_nerf_march.round_candidates``,
+``.round_keep`` and ``.composite`` (the render march without gradients), and ``torch.ops.scalar_nerf_mlp.forward``,
 ``.backward`` and ``.supported`` (the fused bfloat16 decoder, ``fields/fused_mlp.py``), and
 ``torch.ops.scalar_nerf_mlp_f32.forward``, ``.backward`` and ``.isa`` (the fused float32 decoder,
 ``fields/fused_mlp_float32.py``). No ``-march`` flag: the binary runs on any CPU of its architecture
@@ -35,8 +36,9 @@ if TYPE_CHECKING:
 
 CSRC = Path(__file__).resolve().parent.parent / "csrc"
 EXTENSION_NAME = "scalar_nerf_hash_grid"
-SOURCES = [CSRC / name for name in ("hash_grid.cpp", "sampling.cpp", "mlp.cpp", "mlp_f32.cpp")]
+SOURCES = [CSRC / name for name in ("hash_grid.cpp", "sampling.cpp", "march.cpp", "mlp.cpp", "mlp_f32.cpp")]
 SAMPLING_NAMESPACE = "scalar_nerf_sampling"
+MARCH_NAMESPACE = "scalar_nerf_march"
 CUDA_EXTENSION_NAME = "scalar_nerf_hash_grid_cuda"
 CUDA_SOURCES = [CSRC / "hash_grid_cuda.cu"]
 
@@ -140,6 +142,14 @@ def sampling_ops() -> _OpNamespace | None:
     if load_extension() is None:
         return None
     return getattr(torch.ops, SAMPLING_NAMESPACE)
+
+
+def march_ops() -> _OpNamespace | None:
+    """``torch.ops.scalar_nerf_march`` (``round_candidates``, ``round_keep``, ``composite``), or ``None``
+    when the extension cannot be built (builds it on first call)."""
+    if load_extension() is None:
+        return None
+    return getattr(torch.ops, MARCH_NAMESPACE)
 
 
 def require_extension() -> _OpNamespace:

@@ -1,14 +1,20 @@
-"""Volume rendering on a dense ``[num_rays, num_samples]`` layout.
+"""Volume rendering on a dense ``[num_rays, num_samples]`` layout, and of the kept samples alone.
 
 Samples that were skipped (empty space, occluded) carry density 0, so they contribute nothing and
 need no field evaluation. All functions stay finite for densities in ``[0, inf]``, zero-length and
-very long intervals, and rays that hit nothing.
+very long intervals, and rays that hit nothing. :func:`render_kept_samples` renders without
+gradients from the evaluated samples only (one C++ pass on the CPU, ``csrc/march.cpp``), with the
+dense functions as its reference and its path elsewhere.
 """
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import torch
 from torch import Tensor
+
+from scalar_nerfstudio.encodings import _cpp
 
 #: Background colour outside training (evaluation, rendering, the viewer, exports).
 EVAL_BACKGROUND = 0.5
@@ -77,6 +83,63 @@ def render_depth(weights: Tensor, t_mid: Tensor, t_far: Tensor) -> Tensor:
     depth = torch.sum(weights * t_mid, dim=-1, keepdim=True) / accumulation.clamp_min(1e-10)
     depth = torch.where(accumulation > 1e-10, depth, t_far)
     return torch.minimum(torch.nan_to_num(depth, nan=0.0, posinf=0.0), t_far)
+
+
+class KeptRender(NamedTuple):
+    """A render of rays from their kept samples (:func:`render_kept_samples`)."""
+
+    rgb: Tensor
+    """[R, 3] composited colour over ``background``."""
+    depth: Tensor
+    """[R, 1] expected termination depth (:func:`render_depth`)."""
+    accumulation: Tensor
+    """[R, 1] opacity."""
+    sample_weights: Tensor
+    """[M] the weight of each kept sample, in the order given."""
+
+
+def render_kept_samples(
+    sample_ids: Tensor, density: Tensor, rgb: Tensor, *, deltas: Tensor, t_mid: Tensor, fars: Tensor, background: Tensor
+) -> KeptRender:
+    """Volume rendering from the evaluated samples alone: what the dense functions give when every other
+    sample has density 0, without the ``[R, S]`` and ``[R, S, 3]`` scatter.
+
+    Args:
+        sample_ids: [M] flat indices into the ``[R * S]`` samples; each ray's in front-to-back order (rays may
+            interleave, as the visibility sampler's rounds give them; the C++ pass checks it).
+        density: [M] density of those samples.
+        rgb: [M, 3] their colour.
+        deltas: [R, S] interval lengths in world units.
+        t_mid: [R, S] interval mid-points.
+        fars: [R, 1] far bounds (the depth of rays that hit nothing).
+        background: [R, 3] colour behind the rays.
+
+    Float32 on the CPU without gradients goes through ``torch.ops.scalar_nerf_march.composite``; anything
+    else (CUDA, autograd, other dtypes, no C++ build) through :func:`render_weights`, :func:`composite` and
+    :func:`render_depth` on the dense layout. The two agree to float32 rounding (tests/test_march_kernels.py).
+    """
+    num_rays, num_samples = deltas.shape
+    tensors = (density, rgb, deltas, t_mid, fars, background)
+    plain = all(t.device.type == "cpu" and t.dtype == torch.float32 for t in tensors)
+    needs_grad = torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
+    march = _cpp.march_ops() if plain and not needs_grad else None
+    if march is not None:
+        colour, depth, accumulation, _, weights = march.composite(
+            sample_ids.contiguous(), density.contiguous(), rgb.contiguous(), deltas.contiguous(), t_mid.contiguous(),
+            fars.reshape(-1).contiguous(), background.contiguous())
+        return KeptRender(colour, depth, accumulation, weights)
+    densities = density.new_zeros(num_rays * num_samples).index_put((sample_ids,), density).reshape(num_rays, num_samples)
+    colours = rgb.new_zeros(num_rays * num_samples, 3).index_put((sample_ids,), rgb).reshape(num_rays, num_samples, 3)
+    weights, _ = render_weights(densities, deltas)
+    accumulation = weights.sum(dim=-1, keepdim=True)
+    colour = composite(weights, colours) + (1.0 - accumulation) * background
+    return KeptRender(colour, render_depth(weights, t_mid, fars), accumulation, weights.reshape(-1)[sample_ids])
+
+
+def dense_weights(kept: KeptRender, sample_ids: Tensor, num_rays: int, num_samples: int) -> Tensor:
+    """[R, S] weights of a :class:`KeptRender` on the dense layout (0 at the samples not kept)."""
+    weights = kept.sample_weights
+    return weights.new_zeros(num_rays * num_samples).index_put((sample_ids,), weights).reshape(num_rays, num_samples)
 
 
 def distortion_loss(weights: Tensor, s_starts: Tensor, s_ends: Tensor) -> Tensor:

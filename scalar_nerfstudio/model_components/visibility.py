@@ -21,6 +21,7 @@ from typing import List, Optional, Protocol, Tuple
 import torch
 from torch import Tensor
 
+from scalar_nerfstudio.encodings import _cpp
 from scalar_nerfstudio.model_components.rendering import alphas_from_densities, weights_from_alphas
 from scalar_nerfstudio.model_components.sampling import OccupancyGrid
 
@@ -111,7 +112,9 @@ class VisibilitySampler:
         :data:`RENDER_GROUP` per ray: a round evaluates the next candidates of the rays whose
         transmittance is still above the threshold, so a ray that turned opaque costs at most
         ``RENDER_GROUP - 1`` evaluations behind its surface (the kept samples and their values are those
-        of one pass over every candidate)."""
+        of one pass over every candidate). On the CPU a round's bookkeeping is two C++ passes
+        (``torch.ops.scalar_nerf_march``); the torch code here is the path elsewhere and their reference.
+        The kept samples come round by round, so each ray's are in front-to-back order."""
         num_rays, num_samples = deltas.shape
         threshold = self.transmittance_threshold
         if threshold <= 0 or num_rays == 0:
@@ -122,7 +125,7 @@ class VisibilitySampler:
         candidate_ids = torch.nonzero(occupied.reshape(-1)).squeeze(-1)  # [C] ray-major, front to back in a ray
         counts = occupied.sum(dim=1)  # [R] candidates per ray
         firsts = torch.cumsum(counts, dim=0) - counts  # [R] each ray's first candidate in candidate_ids
-        flat_deltas = deltas.reshape(-1)
+        flat_deltas = deltas.reshape(-1).contiguous()
         log_threshold = math.log(threshold)
         depth_before = deltas.new_zeros(num_rays)  # [R] optical depth in front of the round
         group = max(int(RENDER_GROUP), 1)
@@ -131,7 +134,20 @@ class VisibilitySampler:
         kept_density: List[Tensor] = []
         kept_geo: List[Tensor] = []
         most = int(counts.max()) if candidate_ids.numel() else 0
+        march = _cpp.march_ops() if deltas.device.type == "cpu" and deltas.dtype == torch.float32 else None
+        min_alpha = self.alpha_threshold if self.skips_transparent() else -1.0
         for rank in range(0, most, group):
+            if march is not None:  # the same round in two C++ passes (csrc/march.cpp)
+                ids, ray_of_ids = march.round_candidates(counts, firsts, candidate_ids, depth_before, rank, group, log_threshold)
+                if ids.numel() == 0:
+                    break
+                density, geo = self.field.density_at_unit(unit_positions[ids])
+                keep = march.round_keep(ids, ray_of_ids, density.float().contiguous(), flat_deltas, depth_before, threshold, min_alpha)
+                kept = torch.nonzero(keep).squeeze(-1)  # once, not once per mask indexing below
+                kept_ids.append(ids[kept])
+                kept_density.append(density[kept])
+                kept_geo.append(geo[kept])
+                continue
             rays = torch.nonzero((counts > rank) & (-depth_before > log_threshold)).squeeze(-1)  # [A] light still reaches them
             if rays.numel() == 0:
                 break
@@ -146,9 +162,7 @@ class VisibilitySampler:
             optical = -torch.log1p(-alphas.clamp(0.0, 1.0 - 1e-7))
             accumulated = torch.cumsum(optical, dim=-1) + depth_before[rays, None]
             before = torch.cat([depth_before[rays, None], accumulated[:, :-1]], dim=-1)  # [A, k] in front of each candidate
-            keep = torch.exp(-before[valid]) > threshold
-            if self.skips_transparent():
-                keep &= alphas[valid] > self.alpha_threshold
+            keep = (torch.exp(-before[valid]) > threshold) & (alphas[valid] > min_alpha)
             kept_ids.append(ids[keep])
             kept_density.append(density[keep])
             kept_geo.append(geo[keep])

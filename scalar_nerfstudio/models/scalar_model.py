@@ -12,7 +12,8 @@ Rendering path (per ray batch, flat tensors, no nerfstudio RaySamples on the hot
    samples more transparent than ``alpha_threshold`` once the grid has warmed up. Steps 2 and 3 are
    the :class:`~scalar_nerfstudio.model_components.visibility.VisibilitySampler`.
 4. The field (density and colour, with gradients) runs only on the surviving samples, which are
-   scattered back into a dense ``[R, S]`` layout for volume rendering.
+   volume-rendered from their own list (:func:`~scalar_nerfstudio.model_components.rendering.render_kept_samples`:
+   one C++ pass when rendering on the CPU, the dense ``[R, S]`` layout otherwise).
 5. Only when normals are wanted (see :class:`NormalsOutput`): the density's gradient with respect
    to the world position, by autograd on the samples that carry weight, gives each sample's normal
    ``-grad / |grad|``; their weighted sum, normalised, is the ray's ``normals`` output.
@@ -43,11 +44,12 @@ from scalar_nerfstudio.model_components.colliders import BoundedNearFarCollider
 from scalar_nerfstudio.model_components.ray_samples import RaySamples, neutralise_bad_rays
 from scalar_nerfstudio.model_components.rendering import (
     EVAL_BACKGROUND,
-    composite,
+    dense_weights,
     distortion_loss,
     facing_normals,
     normals_to_unit_interval,
     render_depth,
+    render_kept_samples,
     render_normals,
     render_weights,
     safe_normalise,
@@ -141,7 +143,7 @@ class ScalarModelConfig(ModelConfig):
     """Training background (random teaches opaque geometry); evaluation always uses grey."""
     eval_num_rays_per_chunk: Optional[int] = None
     """Rays per chunk of a camera render (eval, ns-render, the viewer); None: by the device it renders
-    on (2^14 on the CPU, 2^18 on CUDA: ``scalar_nerfstudio.device_sizes``)."""
+    on (2^16 on the CPU, 2^18 on CUDA: ``scalar_nerfstudio.device_sizes``)."""
     render_normals: RenderNormals = "rays"
     """When the ``normals`` output (in [0, 1]) is computed outside training: "rays" for ray batches
     (ns-export) but not camera images, "always" also for camera images (the viewer), "never"."""
@@ -328,24 +330,19 @@ class ScalarModel(NormalsOutput, Model):
         rgb_points = self.field.colour(geo, directions, ray_ids, camera_indices=camera_indices)
         # Volume rendering in float32 also under autocast (bf16/fp16 cumulative sums drift).
         density, rgb_points = density.float(), rgb_points.float()
-
-        densities = torch.zeros(num_rays * num_samples, dtype=density.dtype, device=density.device)
-        densities = densities.index_put((sample_ids,), density).reshape(num_rays, num_samples)
-        colours = torch.zeros(num_rays * num_samples, 3, dtype=rgb_points.dtype, device=rgb_points.device)
-        colours = colours.index_put((sample_ids,), rgb_points).reshape(num_rays, num_samples, 3)
-
-        weights, _ = render_weights(densities, deltas)
-        accumulation = weights.sum(dim=-1, keepdim=True)
         background = self._background(num_rays, origins)
-        rgb = composite(weights, colours) + (1.0 - accumulation) * background
-        depth = render_depth(weights, t_mid, fars)
-        outputs = {"rgb": rgb, "depth": depth, "accumulation": accumulation}
+        # From the kept samples alone: each ray's come in front-to-back order from either branch above.
+        rendered = render_kept_samples(sample_ids, density, rgb_points, deltas=deltas, t_mid=t_mid, fars=fars, background=background)
+        rgb = rendered.rgb
+        outputs = {"rgb": rgb, "depth": rendered.depth, "accumulation": rendered.accumulation}
         if self.training and self.config.distortion_loss_mult > 0:
+            weights = dense_weights(rendered, sample_ids, num_rays, num_samples)
             outputs["distortion"] = distortion_loss(weights, lin_disp_spacing(t_starts), lin_disp_spacing(t_ends))
         samples_per_ray = torch.bincount(ray_ids, minlength=num_rays).to(rgb.dtype)[:, None]
         outputs["samples_per_ray"] = samples_per_ray
         if self.normals_wanted() if normals is None else normals:
-            outputs["normals"] = normals_to_unit_interval(self._ray_normals(samples, sample_ids, weights.detach()))
+            weights = dense_weights(rendered, sample_ids, num_rays, num_samples).detach()
+            outputs["normals"] = normals_to_unit_interval(self._ray_normals(samples, sample_ids, weights))
         return outputs
 
     @torch.no_grad()
