@@ -76,3 +76,19 @@ def test_the_report_states_the_automatic_k_only_when_a_block_variant_ran(scene: 
     assert "automatic K = 5," in setting_line(config, "2 cores", 5)
     line = setting_line(config, "2 cores", None)
     assert "automatic K" not in line and "no block variant" in line and "2^17 (ngp-t2: 2^19)" in line
+
+
+def test_a_finished_one_model_run_is_reused_whichever_variants_are_asked_beside_it(scene: Path, tmp_path: Path) -> None:
+    """NGP_T run alone records automatic K 1 (none asked); asked again beside the blocks (K from the capture), its
+    finished run is the same run and ``--resume`` reads it back; a block variant's K still makes its spec."""
+    from scalar_nerfstudio.benchmarking.schedule import same_run
+
+    alone = budget_specs(BenchmarkConfig(data=scene, downscale=1, log2_table=12, budgets=("15m",), variants=("ngp-t",),
+                                         output_dir=tmp_path), tmp_path / "runs")[0]
+    beside = {s["name"]: s for s in budget_specs(BenchmarkConfig(data=scene, downscale=1, log2_table=12, budgets=("15m",),
+                                                                 variants=("ngp-t", "auto"), output_dir=tmp_path), tmp_path / "runs")}
+    assert beside["auto@15m"]["num_blocks_auto"] != alone["num_blocks_auto"]  # the scene's automatic K is not 1
+    assert same_run(alone, beside["ngp-t@15m"]) and same_run(beside["ngp-t@15m"], alone)
+    assert not same_run({**alone, "overrides": {**alone["overrides"], "machine.seed": 7}}, beside["ngp-t@15m"])
+    auto = beside["auto@15m"]
+    assert not same_run({**auto, "num_blocks_auto": auto["num_blocks_auto"] + 1}, auto)

@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
 
 from scalar_nerfstudio.atomic_io import atomic_write_bytes, atomic_write_text
-from scalar_nerfstudio.benchmarking.schedule import finished_run, run_runner
+from scalar_nerfstudio.benchmarking.schedule import finished_run, run_runner, same_run
 from scalar_nerfstudio.benchmarking.variants import BenchmarkConfig, auto_k
 from scalar_nerfstudio.blocks.length import format_duration, parse_duration
 
@@ -96,7 +96,7 @@ def _train(spec: Dict[str, Any], runs: Path, resume: bool, progress, task) -> Di
         if done is not None:
             progress.console.print(f"{spec['name']}: reusing its finished run ({spec['result']})")
             return {**done, "reused": True}
-    same_spec = spec_path.is_file() and json.loads(spec_path.read_text()) == json.loads(json.dumps(spec))
+    same_spec = spec_path.is_file() and same_run(json.loads(spec_path.read_text()), spec)
     runner_spec = {**spec, "resume": bool(resume and same_spec)}
     spec_path.write_text(json.dumps(spec, indent=2))
     runner_path = runs / f"{spec['name']}.runner.json"

@@ -123,6 +123,19 @@ def run_runner(spec_path: Path, log_path: Path, *, what: str, progress, task, ve
         raise SystemExit(f"scalar-nerf-benchmark: {what} failed (exit {code}); log {log_path}:\n{tail}")
 
 
+def same_run(recorded: Dict[str, Any], spec: Dict[str, Any]) -> bool:
+    """Whether the spec ``recorded`` for a run describes the run ``spec`` does: equal as JSON, except that a
+    one-model variant (``ngp-*``) does not use the capture's automatic K, which a budget spec records as 1
+    when no block variant is asked beside it and as the capture's K otherwise; asking another variant with
+    it must not make its finished run another run."""
+    ignored = ("num_blocks_auto",) if str(spec.get("variant", "")).startswith("ngp") else ()
+
+    def identity(value: Dict[str, Any]) -> Dict[str, Any]:
+        return {k: v for k, v in json.loads(json.dumps(value)).items() if k not in ignored}
+
+    return identity(recorded) == identity(spec)
+
+
 def finished_run(spec: Dict[str, Any], spec_path: Path) -> Optional[Dict[str, Any]]:
     """The result of the run ``spec_path`` describes, or None. It is that run's when the spec there is
     ``spec`` (compared as JSON, so paths as written: a scene or output folder given another way is
@@ -132,7 +145,7 @@ def finished_run(spec: Dict[str, Any], spec_path: Path) -> Optional[Dict[str, An
     result_path = Path(spec["result"])
     if not (spec_path.is_file() and result_path.is_file()):
         return None
-    if json.loads(spec_path.read_text()) != json.loads(json.dumps(spec)):
+    if not same_run(json.loads(spec_path.read_text()), spec):
         return None
     if result_path.stat().st_mtime < spec_path.stat().st_mtime:
         return None
