@@ -71,6 +71,7 @@ def test_compact_rendering_equals_the_dense_volume_rendering(monkeypatch: pytest
     num_rays, num_samples = samples["deltas"].shape
     dense = dense_weights(kernel, samples["sample_ids"], num_rays, num_samples)
     torch.testing.assert_close(dense.sum(dim=-1, keepdim=True), kernel.accumulation, atol=1e-5, rtol=0)
+    torch.testing.assert_close(dense, dense_weights(reference, samples["sample_ids"], num_rays, num_samples), atol=1e-5, rtol=0)
 
 
 def test_rays_without_samples_render_the_background_at_their_far_bound() -> None:
@@ -181,5 +182,5 @@ def test_threads_split_the_rays_without_changing_a_value() -> None:
     (keep_one, depth_one, render_one), (keep_two, depth_two, render_two) = results
     assert 0 < int(keep_one.sum()) < keep_one.numel()
     assert torch.equal(keep_one, keep_two) and torch.equal(depth_one, depth_two)
-    for one, two in zip(render_one, render_two):
-        assert torch.equal(one, two)
+    for field in ("rgb", "depth", "accumulation", "sample_weights"):
+        assert torch.equal(getattr(render_one, field), getattr(render_two, field)), field

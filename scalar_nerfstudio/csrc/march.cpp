@@ -147,7 +147,7 @@ at::Tensor round_keep(const at::Tensor& ids, const at::Tensor& rays, const at::T
   return keep;
 }
 
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> composite(
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> composite(
     const at::Tensor& sample_ids, const at::Tensor& density, const at::Tensor& rgb, const at::Tensor& deltas,
     const at::Tensor& t_mid, const at::Tensor& fars, const at::Tensor& background) {
   check_cpu(sample_ids, "sample_ids", at::kLong, 1);
@@ -176,12 +176,10 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> composite
   at::Tensor rgb_out = at::zeros({num_rays, 3}, rgb.options());
   at::Tensor depth_out = at::empty({num_rays, 1}, rgb.options());
   at::Tensor accumulation_out = at::zeros({num_rays, 1}, rgb.options());
-  at::Tensor count_out = at::zeros({num_rays, 1}, rgb.options());
   at::Tensor weights_out = at::empty({m}, rgb.options());
   float* out_rgb = rgb_out.data_ptr<float>();
   float* out_depth = depth_out.data_ptr<float>();
   float* out_acc = accumulation_out.data_ptr<float>();
-  float* out_count = count_out.data_ptr<float>();
   float* out_weight = weights_out.data_ptr<float>();
   {  // checked before the parallel pass, so that a bad input raises here
     std::vector<int64_t> last(num_rays, -1);  // each ray's last sample so far
@@ -210,7 +208,6 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> composite
       optical[local] += optical_of(alpha);
       out_weight[i] = w;
       out_acc[r] += w;
-      out_count[r] += 1.0f;
       weighted_t[local] += w * t[s];
       out_rgb[3 * r] += w * colour[3 * i];
       out_rgb[3 * r + 1] += w * colour[3 * i + 1];
@@ -224,7 +221,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> composite
       for (int c = 0; c < 3; ++c) out_rgb[3 * r + c] += (1.0f - acc) * back[3 * r + c];
     }
   });
-  return {rgb_out, depth_out, accumulation_out, count_out, weights_out};
+  return {rgb_out, depth_out, accumulation_out, weights_out};
 }
 
 }  // namespace
@@ -240,6 +237,6 @@ TORCH_LIBRARY(scalar_nerf_march, m) {
       &round_keep);
   m.def(
       "composite(Tensor sample_ids, Tensor density, Tensor rgb, Tensor deltas, Tensor t_mid, Tensor fars, Tensor background) "
-      "-> (Tensor, Tensor, Tensor, Tensor, Tensor)",
+      "-> (Tensor, Tensor, Tensor, Tensor)",
       &composite);
 }

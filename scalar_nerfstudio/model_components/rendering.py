@@ -9,7 +9,7 @@ dense functions as its reference and its path elsewhere.
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import NamedTuple, Optional
 
 import torch
 from torch import Tensor
@@ -96,6 +96,8 @@ class KeptRender(NamedTuple):
     """[R, 1] opacity."""
     sample_weights: Tensor
     """[M] the weight of each kept sample, in the order given."""
+    weights: Optional[Tensor] = None
+    """[R, S] the weights on the dense layout when the dense code rendered (None from the C++ pass)."""
 
 
 def render_kept_samples(
@@ -124,7 +126,7 @@ def render_kept_samples(
     needs_grad = torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
     march = _cpp.march_ops() if plain and not needs_grad else None
     if march is not None:
-        colour, depth, accumulation, _, weights = march.composite(
+        colour, depth, accumulation, weights = march.composite(
             sample_ids.contiguous(), density.contiguous(), rgb.contiguous(), deltas.contiguous(), t_mid.contiguous(),
             fars.reshape(-1).contiguous(), background.contiguous())
         return KeptRender(colour, depth, accumulation, weights)
@@ -133,11 +135,14 @@ def render_kept_samples(
     weights, _ = render_weights(densities, deltas)
     accumulation = weights.sum(dim=-1, keepdim=True)
     colour = composite(weights, colours) + (1.0 - accumulation) * background
-    return KeptRender(colour, render_depth(weights, t_mid, fars), accumulation, weights.reshape(-1)[sample_ids])
+    return KeptRender(colour, render_depth(weights, t_mid, fars), accumulation, weights.reshape(-1)[sample_ids], weights)
 
 
 def dense_weights(kept: KeptRender, sample_ids: Tensor, num_rays: int, num_samples: int) -> Tensor:
-    """[R, S] weights of a :class:`KeptRender` on the dense layout (0 at the samples not kept)."""
+    """[R, S] weights of a :class:`KeptRender` on the dense layout (0 at the samples not kept): the dense code's
+    own (with their gradients) when it rendered, else the kept samples' scattered."""
+    if kept.weights is not None:
+        return kept.weights
     weights = kept.sample_weights
     return weights.new_zeros(num_rays * num_samples).index_put((sample_ids,), weights).reshape(num_rays, num_samples)
 
