@@ -19,9 +19,11 @@ import subprocess
 import sys
 import time
 import urllib.request
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Optional, TypeVar
+from typing import Any, Callable, Dict, Iterator, List, Optional, TypeVar
 
+import numpy as np
 import pytest
 import torch
 from filelock import FileLock
@@ -179,8 +181,9 @@ def sigkill_after_checkpoint(process: subprocess.Popen, output_dir: Path, min_st
     return step
 
 
-def viewer_page(config: Path, timeout: float = 300.0) -> str:
-    """Start ``ns-viewer`` on a run's config.yml as a user does, fetch its page, stop it; returns the page.
+@contextmanager
+def running_viewer(config: Path, timeout: float = 300.0) -> Iterator[int]:
+    """Start ``ns-viewer`` on a run's config.yml as a user does and yield its port once it serves its page.
 
     Fails the calling test if the viewer exits, serves nothing within ``timeout`` seconds, or logs a
     traceback or a checkpoint that does not fit its model while loading the run."""
@@ -191,21 +194,64 @@ def viewer_page(config: Path, timeout: float = 300.0) -> str:
     )
     try:
         deadline = time.time() + timeout
-        page = None
-        while time.time() < deadline and viewer.poll() is None and page is None:
+        served = False
+        while time.time() < deadline and viewer.poll() is None and not served:
             try:
-                with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=5) as response:
-                    page = response.read().decode("utf-8", "replace")
+                urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=5).close()
+                served = True
             except OSError:
                 time.sleep(1.0)
         assert viewer.poll() is None, viewer.stdout.read()[-3000:] if viewer.stdout else ""
-        assert page is not None, f"the viewer served nothing on port {port} within {timeout:.0f} s"
+        assert served, f"the viewer served nothing on port {port} within {timeout:.0f} s"
+        yield port
     finally:
         viewer.terminate()
         viewer.wait(timeout=60)
     log = viewer.stdout.read() if viewer.stdout else ""
     assert "Traceback" not in log and "size mismatch" not in log, log[-3000:]
-    return page
+
+
+def viewer_image(config: Path, *, c2w: torch.Tensor, fov: float, aspect: float, timeout: float = 300.0,
+                 max_res: int = 512) -> np.ndarray:
+    """The image ``ns-viewer`` sends a browser that looks through one camera: ``[H, W, 3]`` uint8.
+
+    Connects to the running viewer's websocket as the browser does (viser's messages), sends the camera
+    (``c2w`` ``[3, 4]`` in the run's frame, vertical ``fov`` in radians, ``aspect`` width / height, turned into
+    viser's pose the inverse way nerfstudio's viewer reads it back) and returns the first background image at
+    full size, ``max_res`` pixels on its longer side (nerfstudio's "Max res"; a CPU run sends a coarse one first)."""
+    import io
+
+    import msgspec
+    import viser.transforms as vtf
+    from nerfstudio.viewer.viewer import VISER_NERFSTUDIO_SCALE_RATIO
+    from PIL import Image
+    from viser._messages import ViewerCameraMessage
+    from websockets.sync.client import connect
+
+    rotation = c2w[:3, :3].double().cpu().numpy() @ vtf.SO3.from_x_radians(np.pi).as_matrix()  # nerfstudio's c2w -> viser's
+    position = c2w[:3, 3].double().cpu().numpy() * VISER_NERFSTUDIO_SCALE_RATIO
+    forward = -c2w[:3, 2].double().cpu().numpy()  # nerfstudio's cameras look down -z
+    message = ViewerCameraMessage(
+        wxyz=tuple(float(v) for v in vtf.SO3.from_matrix(rotation).wxyz), position=tuple(float(v) for v in position),
+        fov=float(fov), aspect=float(aspect), look_at=tuple(float(v) for v in position + forward),
+        up_direction=tuple(float(v) for v in c2w[:3, 1].double().cpu().numpy()),
+    )
+    with running_viewer(config, timeout) as port, connect(f"ws://127.0.0.1:{port}", max_size=None) as socket_:
+        socket_.send(msgspec.msgpack.encode(message.as_serializable_dict()))
+        deadline, sizes = time.time() + timeout, []
+        while time.time() < deadline:
+            try:
+                raw = socket_.recv(timeout=1.0)
+            except TimeoutError:
+                continue
+            batch = msgspec.msgpack.decode(raw)
+            for item in batch if isinstance(batch, list) else [batch]:
+                if isinstance(item, dict) and item.get("type") == "BackgroundImageMessage":
+                    image = np.asarray(Image.open(io.BytesIO(item["rgb_bytes"])).convert("RGB"))
+                    if max(image.shape[:2]) == max_res:
+                        return image
+                    sizes.append(image.shape[:2])
+    raise AssertionError(f"the viewer sent no image of {max_res} pixels within {timeout:.0f} s (sizes sent: {sizes})")
 
 
 def castle_args() -> List[str]:

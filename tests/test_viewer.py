@@ -6,9 +6,7 @@ from __future__ import annotations
 import io
 import shutil
 import subprocess
-import sys
 import time
-import urllib.request
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -16,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 import tyro
-from conftest import NUM_BLOCKS, free_port
+from conftest import NUM_BLOCKS, running_viewer
 from prerequisites import needs
 from quality import (
     FUSION_TOLERANCE_DB,
@@ -178,14 +176,17 @@ def _screenshot(driver) -> np.ndarray:
 def _choose(driver, label_text: str, option: str) -> None:
     """Pick ``option`` in the viewer's dropdown labelled ``label_text``."""
     from selenium.webdriver.common.by import By
+    from selenium.webdriver.support import expected_conditions
+    from selenium.webdriver.support.ui import WebDriverWait
 
     label = driver.find_element(By.XPATH, f"//label[text()='{label_text}']")
     field = driver.find_element(By.ID, label.get_attribute("for"))
     driver.execute_script("arguments[0].scrollIntoView({block: 'center'});", field)
     field.click()
-    time.sleep(1.0)
-    driver.find_element(By.XPATH, f"//*[@role='option'][normalize-space()='{option}']").click()
-    assert field.get_attribute("value") == option
+    # The list opens when the browser gets to it: on a loaded machine that can take seconds.
+    item = (By.XPATH, f"//*[@role='option'][normalize-space()='{option}']")
+    WebDriverWait(driver, 60).until(expected_conditions.element_to_be_clickable(item)).click()
+    WebDriverWait(driver, 30).until(lambda _: field.get_attribute("value") == option)
 
 
 def _wait_for_change(driver, viewport, before: np.ndarray, timeout: float = 180.0) -> None:
@@ -226,49 +227,32 @@ def test_browser_shows_a_render_that_changes_with_fusion(full_run: Path) -> None
     from selenium import webdriver
     from selenium.webdriver.chrome.service import Service
 
-    port = free_port()
-    viewer = subprocess.Popen(
-        [sys.executable, "-m", "nerfstudio.scripts.viewer.run_viewer", "--load-config", str(full_run / "config.yml"),
-         "--viewer.websocket-port", str(port)],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-    )
     options = webdriver.ChromeOptions()
     options.binary_location = CHROMIUM
     for argument in ("--headless=new", "--no-sandbox", "--disable-gpu", "--window-size=1000,700", "--enable-unsafe-swiftshader"):
         options.add_argument(argument)
-    driver = None
-    try:
-        deadline = time.time() + 300
-        while time.time() < deadline and viewer.poll() is None:
-            try:
-                urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=5).close()
-                break
-            except OSError:
-                time.sleep(1.0)
-        assert viewer.poll() is None, viewer.stdout.read()[-3000:] if viewer.stdout else ""
+    with running_viewer(full_run / "config.yml") as port:
         driver = webdriver.Chrome(service=Service(CHROMEDRIVER), options=options)
-        driver.get(f"http://127.0.0.1:{port}/")
-        viewport = (slice(80, 520), slice(20, 660))  # the 3D view, left of the control panel
-        rgb_render = _settled(driver, viewport)
-        assert rgb_render.std() > 5.0, "the render area is blank"
+        try:
+            driver.get(f"http://127.0.0.1:{port}/")
+            viewport = (slice(80, 520), slice(20, 660))  # the 3D view, left of the control panel
+            rgb_render = _settled(driver, viewport)
+            assert rgb_render.std() > 5.0, "the render area is blank"
 
-        # The block_colour output paints each pixel in the colour of the block that won it:
-        # under global fusion that is block colours (tab10 blue/orange), under global-only grey.
-        _choose(driver, "Output type", "block_colour")
-        _wait_for_change(driver, viewport, rgb_render)
-        blocks_render = _settled(driver, viewport)
-        _choose(driver, "Fusion", "global-only")
-        # A render of the global model and both blocks can take longer than _settled's 3 s window,
-        # so wait for the grey of global-only (or the time-out) before taking the settled image.
-        _wait_for(driver, viewport, lambda image: _colourfulness(image) <= _colourfulness(blocks_render) - 10.0)
-        global_only_render = _settled(driver, viewport)
-        assert _colourfulness(blocks_render) > _colourfulness(global_only_render) + 10.0, "fusion did not change the block colours"
-        assert np.abs(global_only_render - blocks_render).mean() > 5.0, "switching the fusion did not change the image"
-    finally:
-        if driver is not None:
+            # The block_colour output paints each pixel in the colour of the block that won it:
+            # under global fusion that is block colours (tab10 blue/orange), under global-only grey.
+            _choose(driver, "Output type", "block_colour")
+            _wait_for_change(driver, viewport, rgb_render)
+            blocks_render = _settled(driver, viewport)
+            _choose(driver, "Fusion", "global-only")
+            # A render of the global model and both blocks can take longer than _settled's 3 s window,
+            # so wait for the grey of global-only (or the time-out) before taking the settled image.
+            _wait_for(driver, viewport, lambda image: _colourfulness(image) <= _colourfulness(blocks_render) - 10.0)
+            global_only_render = _settled(driver, viewport)
+            assert _colourfulness(blocks_render) > _colourfulness(global_only_render) + 10.0, "fusion did not change the block colours"
+            assert np.abs(global_only_render - blocks_render).mean() > 5.0, "switching the fusion did not change the image"
+        finally:
             driver.quit()
-        viewer.terminate()
-        viewer.wait(timeout=60)
 
 
 # ------------------------------------------------------------------ render and eval commands
