@@ -21,6 +21,7 @@ from scalar_nerfstudio.blocks.length import (
     parse_duration,
     plan_length,
 )
+from scalar_nerfstudio.engine.contract import Phase
 from scalar_nerfstudio.engine.pace import TrainingClock, calibration_start, eta_line, pace_is_due
 
 
@@ -238,3 +239,59 @@ def test_a_bad_budget_option_is_refused_before_anything_is_written() -> None:
     good = ScalarPipelineConfig()
     good.time_budget, good.global_steps = "15m", 100
     check_pipeline_options(good)
+
+
+class _PhasesOnly:
+    """The part of a pipeline the ETA lines read: a plan from the capture, a global phase and two blocks."""
+
+    def __init__(self, global_steps: int, block_steps: int) -> None:
+        self.length = TrainingLength(global_steps, block_steps, "capture")
+        self.phases = [Phase(None, 0, global_steps), Phase(0, global_steps, block_steps), Phase(1, global_steps + block_steps, block_steps)]
+
+    def phase_at(self, step: int) -> Phase:
+        return next((p for p in self.phases if p.start_step <= step < p.end_step), self.phases[-1])
+
+
+def test_without_a_budget_the_eta_follows_the_pace_through_the_global_phase(capsys: pytest.CaptureFixture[str]) -> None:
+    """The first ETA comes from the slowest steps (before the occupancy grid has pruned): the ETA is printed
+    again at 25, 50 and 75 % of the global phase from the latest steps' pace, and at each block's start."""
+    from scalar_nerfstudio.engine.budget import ClockFollower
+
+    now = _FakeTime()
+    clock = TrainingClock(now=now)
+    pipeline = _PhasesOnly(global_steps=2000, block_steps=1000)
+    follower = ClockFollower(clock, replan=lambda *_: pytest.fail("a plan from the capture is never planned again"),
+                             total_steps=lambda: 4000)
+    clock.start(0)
+    lines = {}
+    for step in range(4000):
+        now.t += 0.5 if step < 600 else 0.1  # 2 steps/s until the grid prunes, then 10
+        follower.after_step(pipeline, step)  # type: ignore[arg-type]  # the fake has what the ETA reads
+        out = capsys.readouterr().out
+        if out:
+            lines[step + 1] = " ".join(out.split())
+    assert "2.00 steps/s over steps 160-240 (early steps are the slowest)" in lines[240]
+    assert "about 31 min 20 s left" in lines[240]  # 3760 steps at the first pace
+    for step, share, left in [(500, "25%", "about 29 min 10 s left"), (1000, "50%", "about 5 min 00 s left"),
+                              (1500, "75%", "about 4 min 10 s left")]:
+        assert f"{share} of the global phase done" in lines[step] and left in lines[step], lines[step]
+    assert "phase block 0 starts (1000 steps); the run has about 3 min 20 s left" in lines[2000]
+    assert sorted(lines) == [240, 500, 1000, 1500, 2000, 3000], sorted(lines)
+
+
+def test_a_short_global_phase_gets_one_eta_line_where_its_shares_passed_before_the_pace_was_known(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    from scalar_nerfstudio.engine.budget import ClockFollower
+
+    now = _FakeTime()
+    clock = TrainingClock(now=now)
+    pipeline = _PhasesOnly(global_steps=400, block_steps=100)
+    follower = ClockFollower(clock, replan=lambda *_: None, total_steps=lambda: 600)
+    clock.start(0)
+    printed = []
+    for step in range(400):
+        now.t += 0.1
+        follower.after_step(pipeline, step)  # type: ignore[arg-type]  # the fake has what the ETA reads
+        if capsys.readouterr().out:
+            printed.append(step + 1)
+    assert printed == [240, 300, 400], printed  # the first ETA (25 % and 50 % had passed), 75 %, block 0 starts

@@ -1,9 +1,10 @@
 """Following the clock while a run trains: the ETA lines, and a time budget's plan made again as the pace is known.
 
 :class:`ClockFollower` is told of every step (:meth:`ClockFollower.after_step`). Once the pace is known
-(:func:`.pace.pace_is_due`) it prints the ETA; with a time budget (``--pipeline.time-budget``) it plans the
-steps then, again at :data:`.pace.REPLAN_AT` of the budget while the global phase trains (its steps get
-dearer as the model fills in), the blocks' steps from the time left when the global phase ends, and each
+(:func:`.pace.pace_is_due`) it prints the ETA, and again at :data:`.pace.REPLAN_AT` of the global phase and
+at each phase's start; with a time budget (``--pipeline.time-budget``) it plans the
+steps then, again at :data:`.pace.REPLAN_AT` of the budget while the global phase trains (the pace changes as
+the occupancy grid learns where the scene is empty), the blocks' steps from the time left when the global phase ends, and each
 block's again once its own pace is known (:meth:`ClockFollower.plan_blocks_in`). The plan itself is set by
 the trainer's ``replan`` (phases, learning-rate schedules, the recorded plan follow it).
 """
@@ -68,8 +69,12 @@ class ClockFollower:
             pace = clock.pace(since_steps=first)
             if budget is not None and not length.measured and pace is not None:
                 self._replan_from_pace(pipeline, step, budget, pace)
-            CONSOLE.print(f"step {step + 1}: {pace or 0.0:.2f} steps/s over steps {first}-{step + 1}; "
-                          f"{format_length(pipeline.length, pipeline.phases)}; {eta_line(self._steps_left(step), pace)}")
+            CONSOLE.print(f"step {step + 1}: {pace or 0.0:.2f} steps/s over steps {first}-{step + 1} (early steps are the "
+                          f"slowest); {format_length(pipeline.length, pipeline.phases)}; {eta_line(self._steps_left(step), pace)}")
+            if budget is None:  # the global phase's shares already passed need no ETA of their own after this one
+                self._replans_done.update(share for share in REPLAN_AT if step + 1 - phase.start_step >= share * phase.num_steps)
+        elif budget is None and in_global and self._pace_reported:
+            self._eta_in_global_phase(phase, step)
         elif budget is not None and length.measured and (in_global or phase.block is not None and phase.start_step == 0):
             pace = clock.pace(last_steps=200)
             spent = self.budget_spent_s(step + 1, pace or 0.0)
@@ -96,6 +101,17 @@ class ClockFollower:
         if self._pace_reported and step + 1 == upcoming.start_step and step + 1 < self._total_steps():
             CONSOLE.print(f"step {step + 1}: phase {upcoming.name} starts ({upcoming.num_steps} steps); the run has "
                           f"{eta_line(self._steps_left(step), clock.pace(last_steps=200))}")
+
+    def _eta_in_global_phase(self, phase: Phase, step: int) -> None:
+        """Without a budget: the ETA again at :data:`.pace.REPLAN_AT` of the global phase's steps, from the pace
+        of the latest steps (the first ETA comes from the slowest steps, before the occupancy grid has pruned)."""
+        done = step + 1 - phase.start_step
+        due = [share for share in REPLAN_AT if share not in self._replans_done and done >= share * phase.num_steps]
+        pace = self.clock.pace(last_steps=200)
+        if due and pace is not None:
+            self._replans_done.update(due)
+            CONSOLE.print(f"step {step + 1}: {pace:.2f} steps/s over the last steps, {due[-1]:.0%} of the global phase done; "
+                          f"the run has {eta_line(self._steps_left(step), pace)}")
 
     def plan_blocks_in(self, pipeline: PhasedPipeline, phase: Phase, step: int, budget: float) -> None:
         """In a block phase of a budget run, after ``step``: plan its steps and those of the blocks after it again
