@@ -1,10 +1,10 @@
 """Following the clock while a run trains: the ETA lines, and a time budget's plan made again as the pace is known.
 
 :class:`ClockFollower` is told of every step (:meth:`ClockFollower.after_step`). Once the pace is known
-(:func:`.pace.pace_is_due`) it prints the ETA, and again at :data:`.pace.REPLAN_AT` of the global phase and
-at each phase's start; with a time budget (``--pipeline.time-budget``) it plans the
-steps then, again at :data:`.pace.REPLAN_AT` of the budget while the global phase trains (the pace changes as
-the occupancy grid learns where the scene is empty), the blocks' steps from the time left when the global phase ends, and each
+(:func:`.pace.pace_is_due`) it prints the ETA, and again at :data:`.pace.REPLAN_AT` of the global phase and at
+each phase's start; with a time budget (``--pipeline.time-budget``) it plans the steps then, again at
+:data:`.pace.REPLAN_AT` of the budget while the global phase trains (the pace changes as the occupancy grid
+learns where the scene is empty), the blocks' steps from the time left when the global phase ends, and each
 block's again once its own pace is known (:meth:`ClockFollower.plan_blocks_in`). The plan itself is set by
 the trainer's ``replan`` (phases, learning-rate schedules, the recorded plan follow it).
 """
