@@ -127,6 +127,16 @@ def ray_bundle(origins: torch.Tensor, directions: torch.Tensor) -> RayBundle:
                      camera_indices=torch.zeros(n, 1, dtype=torch.long, device=device))
 
 
+def with_torch_code(monkeypatch: pytest.MonkeyPatch, kernels: str, fn: Callable[[], T]) -> T:
+    """``fn()`` with one group of the C++ kernels hidden, so that the torch code runs: ``kernels`` names its loader
+    in ``scalar_nerfstudio.encodings._cpp`` (``sampling_ops``, ``march_ops``)."""
+    from scalar_nerfstudio.encodings import _cpp
+
+    with monkeypatch.context() as patch:
+        patch.setattr(_cpp, kernels, lambda: None)
+        return fn()
+
+
 def free_port() -> int:
     """A TCP port that is free right now on localhost."""
     with socket.socket() as sock:

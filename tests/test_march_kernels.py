@@ -9,26 +9,15 @@ prunes, and a render with normals. The kernels' own checks (samples out of order
 
 from __future__ import annotations
 
-from typing import Callable, TypeVar
-
 import pytest
 import torch
-from conftest import ray_bundle, small_scalar_model
+from conftest import ray_bundle, small_scalar_model, with_torch_code
 
 from scalar_nerfstudio.encodings import _cpp
 from scalar_nerfstudio.model_components.rendering import dense_weights, render_kept_samples
 from scalar_nerfstudio.models.scalar_model import ScalarModel
 
 pytestmark = pytest.mark.skipif(_cpp.march_ops() is None, reason="the C++ kernels do not build here")
-
-T = TypeVar("T")
-
-
-def with_torch_code(monkeypatch: pytest.MonkeyPatch, fn: Callable[[], T]) -> T:
-    """``fn()`` with the C++ march kernels hidden (the torch code runs)."""
-    with monkeypatch.context() as patch:
-        patch.setattr(_cpp, "march_ops", lambda: None)
-        return fn()
 
 
 def kept_samples(num_rays: int = 96, num_samples: int = 24, seed: int = 0) -> dict:
@@ -63,7 +52,7 @@ def render(samples: dict):  # type: ignore[no-untyped-def]
 def test_compact_rendering_equals_the_dense_volume_rendering(monkeypatch: pytest.MonkeyPatch) -> None:
     samples = kept_samples()
     kernel = render(samples)
-    reference = with_torch_code(monkeypatch, lambda: render(samples))
+    reference = with_torch_code(monkeypatch, "march_ops", lambda: render(samples))
     for field in ("rgb", "depth", "accumulation", "sample_weights"):
         assert torch.isfinite(getattr(kernel, field)).all(), field
         torch.testing.assert_close(getattr(kernel, field), getattr(reference, field), atol=1e-5, rtol=0)
@@ -112,7 +101,7 @@ def test_a_round_keeps_what_the_torch_rounds_keep(monkeypatch: pytest.MonkeyPatc
         samples = model._ray_samples(model.collider(rays), jitter=False)  # noqa: SLF001 - the render's own samples
         deltas = samples.t_ends - samples.t_starts
         kernel = model.visibility().visible_with_features(samples.unit_positions, deltas)
-        reference = with_torch_code(monkeypatch, lambda: model.visibility().visible_with_features(samples.unit_positions, deltas))
+        reference = with_torch_code(monkeypatch, "march_ops", lambda: model.visibility().visible_with_features(samples.unit_positions, deltas))
     assert kernel[0].numel() > 0
     assert torch.equal(kernel[0], reference[0])
     torch.testing.assert_close(kernel[1], reference[1], atol=0, rtol=0)
@@ -125,7 +114,7 @@ def test_a_model_renders_the_same_image_with_the_kernels_as_with_the_torch_code(
     rays = camera_rays(384)
     with torch.no_grad():
         kernel = model.render_rays(rays, normals=normals)
-        reference = with_torch_code(monkeypatch, lambda: model.render_rays(rays, normals=normals))
+        reference = with_torch_code(monkeypatch, "march_ops", lambda: model.render_rays(rays, normals=normals))
     assert kernel["accumulation"].max() > 0.9 and kernel["accumulation"].min() < 0.1  # rays hit and miss
     for key in ("rgb", "depth", "accumulation", "samples_per_ray", *(["normals"] if normals else [])):
         torch.testing.assert_close(kernel[key], reference[key], atol=1e-5, rtol=0)

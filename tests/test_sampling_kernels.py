@@ -9,11 +9,10 @@ on cell boundaries, cells never evaluated, NaN and zero intervals).
 from __future__ import annotations
 
 import math
-from typing import Callable, TypeVar
 
 import pytest
 import torch
-from conftest import ray_bundle, small_scalar_model
+from conftest import ray_bundle, small_scalar_model, with_torch_code
 
 from scalar_nerfstudio.encodings import _cpp
 from scalar_nerfstudio.fields.scalar_field import contract_rays_to_unit_cube
@@ -21,15 +20,6 @@ from scalar_nerfstudio.model_components.sampling import OccupancyGrid
 from scalar_nerfstudio.models.scalar_model import ScalarModel
 
 pytestmark = pytest.mark.skipif(_cpp.sampling_ops() is None, reason="the C++ kernels do not build here")
-
-T = TypeVar("T")
-
-
-def with_torch_code(monkeypatch: pytest.MonkeyPatch, fn: Callable[[], T]) -> T:
-    """``fn()`` with the C++ sampling kernels hidden (the torch code runs)."""
-    with monkeypatch.context() as patch:
-        patch.setattr(_cpp, "sampling_ops", lambda: None)
-        return fn()
 
 
 def extreme_rays(num_rays: int = 64, num_samples: int = 16) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -60,7 +50,7 @@ def test_the_kernel_places_samples_in_the_unit_cube_as_the_torch_code_does(
     origins, directions, t = extreme_rays()
     centre_tensor = torch.tensor(centre)
     kernel = contract_rays_to_unit_cube(origins, directions, t, centre=centre_tensor, radius=radius)
-    reference = with_torch_code(monkeypatch, lambda: contract_rays_to_unit_cube(origins, directions, t, centre=centre_tensor,
+    reference = with_torch_code(monkeypatch, "sampling_ops", lambda: contract_rays_to_unit_cube(origins, directions, t, centre=centre_tensor,
                                                                                 radius=radius))
     assert kernel.shape == (t.numel(), 3) and kernel.dtype == torch.float32
     assert torch.isfinite(kernel).all() and (kernel >= 0).all() and (kernel <= 1).all()
@@ -93,11 +83,11 @@ def test_the_kernel_picks_the_samples_worth_evaluating_as_the_torch_code_does(
     deltas[320:330] = float("inf")
     for alpha_threshold in (0.0, 0.01, 0.5):
         kernel = grid.worth_evaluating(positions, deltas, alpha_threshold)
-        reference = with_torch_code(monkeypatch, lambda: grid.worth_evaluating(positions, deltas, alpha_threshold))
+        reference = with_torch_code(monkeypatch, "sampling_ops", lambda: grid.worth_evaluating(positions, deltas, alpha_threshold))
         assert torch.equal(kernel, reference), alpha_threshold
         assert 0 < int(kernel.sum()) < kernel.numel()  # a test that can tell the samples apart
     occupied = grid.is_occupied(positions)
-    assert torch.equal(occupied, with_torch_code(monkeypatch, lambda: grid.is_occupied(positions)))
+    assert torch.equal(occupied, with_torch_code(monkeypatch, "sampling_ops", lambda: grid.is_occupied(positions)))
     assert torch.equal(grid.worth_evaluating(positions, deltas, 0.0), occupied)
 
 
@@ -116,7 +106,7 @@ def test_a_model_renders_the_same_image_with_the_kernels_as_with_the_torch_code(
     model.eval()
     with torch.no_grad():
         kernel = model(rays)
-        reference = with_torch_code(monkeypatch, lambda: model(rays))
+        reference = with_torch_code(monkeypatch, "sampling_ops", lambda: model(rays))
     assert kernel["accumulation"].max() > 0.9 and kernel["accumulation"].min() < 0.1  # rays hit and miss
     for key in ("rgb", "depth", "accumulation", "samples_per_ray"):
         torch.testing.assert_close(kernel[key], reference[key], atol=1e-5, rtol=0)
