@@ -37,6 +37,24 @@ def test_every_budget_trains_every_variant_from_the_start_as_a_user_would(scene:
     assert by_name["auto@15m"]["fusions"][0] == "nearest-guarded"
 
 
+def test_the_variants_asked_are_the_runs_trained_and_a_variant_no_budget_trains_is_refused(scene: Path, tmp_path: Path) -> None:
+    """``--variants`` with ``--budgets`` trains exactly the variants asked (the one models' ``-decay`` schedule
+    among them, former names accepted); one that a budget does not train is refused before anything is written,
+    never replaced by the default four."""
+    config = BenchmarkConfig(data=scene, downscale=1, log2_table=12, budgets=("1h",), variants=("ngp-t-decay", "ngp21"),
+                             output_dir=tmp_path / "out")
+    check_options(config)
+    specs = budget_specs(config, tmp_path / "runs")
+    assert [s["name"] for s in specs] == ["ngp-t-decay@1h", "ngp-t2@1h"]
+    decay, table = (s["overrides"] for s in specs)
+    assert decay["pipeline.one_model_restart"] == 0.0 and decay["pipeline.model.field.log2_hashmap_size"] == 12
+    assert "pipeline.one_model_restart" not in table and table["pipeline.model.field.log2_hashmap_size"] == 14
+    for variants in (("ngp-t", "scalar"), ("nerfacto",)):
+        with pytest.raises(SystemExit, match=f"--variants {variants[-1]}: not trained by --budgets"):
+            check_options(BenchmarkConfig(data=scene, budgets=("15m",), variants=variants, output_dir=tmp_path / "out"))
+    assert not (tmp_path / "out").exists()
+
+
 def test_a_budget_that_is_no_duration_is_refused() -> None:
     with pytest.raises(SystemExit, match="--budgets soon"):
         check_options(BenchmarkConfig(budgets=("15m", "soon")))

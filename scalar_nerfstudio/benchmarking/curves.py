@@ -3,9 +3,11 @@
 For every wall-clock budget, each variant trains once, from the start, as ``ns-train scalar-nerf
 --pipeline.time-budget B`` would (its steps planned to fit the budget at its measured pace, its
 learning-rate schedule spanning them), and is evaluated on the held-out views at 25, 50 and 75 % of
-its training time and at its end. The variants:
+its training time and at its end. The variants (``--variants``; by default ``ngp-t``, ``ngp-t2``, ``auto`` and
+``auto-parallel``):
 
 * ``ngp-t``: one model with the blocks' table 2^T (the paper's NGP_T), ``ngp-t2``: a 4x table;
+  ``ngp-t-decay`` / ``ngp-t2-decay``: the same with one decay over the run instead of the one-model restart;
 * ``auto``: ``ns-train scalar-nerf``'s defaults (automatic K, blocks after the global phase, on one machine);
 * ``auto-parallel``: the same on K workers (``--pipeline.block-workers K``): the budget is the wall-clock of
   the global phase plus one block, every block getting the time after the global phase (trained here one
@@ -28,16 +30,20 @@ from typing import Any, Dict, List, Optional, Tuple
 
 from scalar_nerfstudio.atomic_io import atomic_write_bytes, atomic_write_text
 from scalar_nerfstudio.benchmarking.schedule import finished_run, run_runner, same_run
-from scalar_nerfstudio.benchmarking.variants import BenchmarkConfig, auto_k
+from scalar_nerfstudio.benchmarking.variants import (
+    CURVE_VARIANTS,
+    DECAY_SUFFIX,
+    BenchmarkConfig,
+    auto_k,
+    curve_variants,
+)
 from scalar_nerfstudio.blocks.length import format_duration, parse_duration
 
 __all__ = ["CURVE_VARIANTS", "automatic_k_of", "budget_specs", "curve_table", "run_curves", "setting_line"]
 
-#: The variants a budget trains (see the module's text).
 #: The minutes the time axis is labelled at (those within the plotted range).
 NICE_MINUTES: Tuple[float, ...] = (0.25, 0.5, 1, 2, 3, 5, 10, 15, 30, 60, 120, 240, 480)
 
-CURVE_VARIANTS: Tuple[str, ...] = ("ngp-t", "ngp-t2", "auto", "auto-parallel")
 #: Training steps between a budget run's checkpoints (what ``--resume`` continues from).
 SAVE_EVERY_STEPS = 1000
 
@@ -49,7 +55,7 @@ def _label(budget: str) -> str:
 def budget_specs(config: BenchmarkConfig, runs: Path) -> List[Dict[str, Any]]:
     """One runner SPEC per (budget, variant), in order: every variant of the shortest budget first."""
     budgets = sorted(config.budgets or (), key=parse_duration)
-    wanted = [v for v in config.variants if v in CURVE_VARIANTS] or list(CURVE_VARIANTS)
+    wanted = curve_variants(config)
     log2_t = config.log2_table
     common: Dict[str, Any] = {
         "machine.seed": config.seed, "pipeline.datamanager.train_num_rays_per_batch": config.rays_per_batch,
@@ -70,8 +76,10 @@ def budget_specs(config: BenchmarkConfig, runs: Path) -> List[Dict[str, Any]]:
             progress = seconds
             if variant.startswith("ngp"):
                 overrides.update({"pipeline.num_blocks": 1, "pipeline.train_blocks": False})
-                if variant == "ngp-t2":
+                if variant.startswith("ngp-t2"):
                     overrides["pipeline.model.field.log2_hashmap_size"] = log2_t + 2
+                if variant.endswith(DECAY_SUFFIX):
+                    overrides["pipeline.one_model_restart"] = 0.0
             else:
                 fusions = [ScalarSceneModelConfig.fusion, "global-only"]
                 if variant == "auto-parallel":

@@ -83,6 +83,10 @@ VARIANTS: Tuple[str, ...] = (
     *ONE_MODEL_VARIANTS, "scalar", "scalar-init-global", "scalar-fitted", "scalar-wo-sd", "scalar-wo-ft", "scalar-s1.0", "scalar-autocap", "auto", "auto-fitted", "auto-parallel", "auto-parallel-fitted", "nerfacto",
 )
 
+#: The variants ``--budgets`` can train (the one models with either schedule, the defaults on one machine and on
+#: K workers), and those it trains when ``--variants`` is left at its default.
+CURVE_VARIANTS: Tuple[str, ...] = (*ONE_MODEL_VARIANTS, "auto", "auto-parallel")
+DEFAULT_CURVE_VARIANTS: Tuple[str, ...] = ("ngp-t", "ngp-t2", "auto", "auto-parallel")
 #: The one-model runs trained once more for the blocks' wall-clock are named ``<variant>WALL_CLOCK_SUFFIX``.
 WALL_CLOCK_SUFFIX = "-wall-clock"
 #: A one-model run that ends this share of the blocks' wall-clock or less before it is read at its end.
@@ -210,6 +214,14 @@ def use_quick_budgets(config: BenchmarkConfig) -> None:
     config.rays_per_batch, config.eval_every, config.log2_table = 512, 10, 14
 
 
+def curve_variants(config: BenchmarkConfig) -> List[str]:
+    """The variants a ``--budgets`` benchmark trains, in the order asked: ``--variants`` as given (former names
+    replaced by the new ones), or :data:`DEFAULT_CURVE_VARIANTS` when ``--variants`` is left at its default."""
+    if tuple(config.variants) == VARIANTS:
+        return list(DEFAULT_CURVE_VARIANTS)
+    return list(dict.fromkeys(canonical_variant(v) for v in config.variants))
+
+
 def check_options(config: BenchmarkConfig) -> None:
     """Refuse, with the option named, variants that do not exist and a parallel budget of no steps (before
     anything is written)."""
@@ -239,6 +251,10 @@ def check_options(config: BenchmarkConfig) -> None:
     if unknown:
         raise SystemExit(f"scalar-nerf-benchmark: unknown variant(s) {unknown}; choose from {list(VARIANTS)} "
                          f"(former names {list(VARIANT_ALIASES)} are accepted)")
+    not_timed = [v for v in curve_variants(config) if v not in CURVE_VARIANTS] if config.budgets is not None else []
+    if not_timed:
+        raise SystemExit(f"scalar-nerf-benchmark: --variants {' '.join(not_timed)}: not trained by --budgets; "
+                         f"choose from {list(CURVE_VARIANTS)}")
     if config.fusions is not None:
         from scalar_nerfstudio.fusion import FusionModeError, parse_fusion_mode
 
