@@ -31,15 +31,15 @@ from typing import Any, Dict, List, Optional, Tuple
 from scalar_nerfstudio.atomic_io import atomic_write_bytes, atomic_write_text
 from scalar_nerfstudio.benchmarking.schedule import finished_run, run_runner, same_run
 from scalar_nerfstudio.benchmarking.variants import (
-    CURVE_VARIANTS,
-    DECAY_SUFFIX,
+    ONE_MODEL_VARIANTS,
     BenchmarkConfig,
     auto_k,
     curve_variants,
+    one_model_schedule,
 )
 from scalar_nerfstudio.blocks.length import format_duration, parse_duration
 
-__all__ = ["CURVE_VARIANTS", "automatic_k_of", "budget_specs", "curve_table", "run_curves", "setting_line"]
+__all__ = ["automatic_k_of", "budget_specs", "curve_table", "run_curves", "setting_line"]
 
 #: The minutes the time axis is labelled at (those within the plotted range).
 NICE_MINUTES: Tuple[float, ...] = (0.25, 0.5, 1, 2, 3, 5, 10, 15, 30, 60, 120, 240, 480)
@@ -74,11 +74,12 @@ def budget_specs(config: BenchmarkConfig, runs: Path) -> List[Dict[str, Any]]:
             fusions: List[str] = []
             eval_at = [share * seconds for share in sorted(config.budget_eval_shares)] + [seconds]
             progress = seconds
-            if variant.startswith("ngp"):
+            if variant in ONE_MODEL_VARIANTS:
+                size, schedule = one_model_schedule(variant)
                 overrides.update({"pipeline.num_blocks": 1, "pipeline.train_blocks": False})
-                if variant.startswith("ngp-t2"):
+                if size == "ngp-t2":
                     overrides["pipeline.model.field.log2_hashmap_size"] = log2_t + 2
-                if variant.endswith(DECAY_SUFFIX):
+                if schedule == "decay":
                     overrides["pipeline.one_model_restart"] = 0.0
             else:
                 fusions = [ScalarSceneModelConfig.fusion, "global-only"]
