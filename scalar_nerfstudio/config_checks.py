@@ -193,6 +193,12 @@ def _check_model(model: ScalarSceneModelConfig) -> None:
     guard = model.guard_accumulation
     if guard is not None and (isinstance(guard, bool) or not isinstance(guard, (int, float)) or not (math.isfinite(guard) and 0 < guard <= 1)):
         raise OptionError(f"{_flag('guard_accumulation', prefix)} {_show(guard)}: must be a number in (0, 1] (an accumulated opacity).")
+    share = model.pose_gradient_share
+    if isinstance(share, bool) or not isinstance(share, (int, float)) or not (math.isfinite(share) and 0 < share <= 1):
+        raise OptionError(f"{_flag('pose_gradient_share', prefix)} {_show(share)}: must be a number in (0, 1] (a share of a batch's rays).")
+    mode = model.camera_optimizer.mode
+    if mode not in ("off", "SO3xR3", "SE3"):
+        raise OptionError(f"--pipeline.model.camera-optimizer.mode {_show(mode)}: must be off, SO3xR3 or SE3.")
     _at_least(model, "block_fit_steps", 0, why=" (0: a fitted block keeps its fresh table)", prefix=prefix, optional=True)
     _at_least(model, "block_fit_points", 1, prefix=prefix, optional=True)
     near, far = model.near_plane, model.far_plane

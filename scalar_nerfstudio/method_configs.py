@@ -71,6 +71,9 @@ def global_trainer_config(method_name: str = "scalar-nerf", config_class: Type[S
             "decoder": _adam(1e-3),
             "appearance": _adam(1e-3),
             "block_decoder": _adam(5e-5),
+            # Pose corrections (--pipeline.model.camera-optimizer.mode SO3xR3), learnt in the global phase
+            # only, with one decay over it: nerfacto's rate.
+            "camera_opt": _adam(1e-3),
         },
         viewer=ViewerConfig(num_rays_per_chunk=1 << 14),
         vis="viewer",

@@ -15,6 +15,7 @@ from typing import Any, Dict, List, Literal, Optional, Tuple, Type
 
 import torch
 import tyro
+from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.data.datamanagers.base_datamanager import DataManager
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
@@ -348,6 +349,12 @@ class ScalarPipeline(PipelineBase):
         if not global_state:
             raise ValueError(f"{checkpoint} holds no global model (is it a scalar-nerf checkpoint?)")
         self.model.global_model.load_state_dict(global_state, strict=True)
+        poses = ScalarSceneModel.pose_state(state)
+        if self.model.pose_refinement.enabled != bool(poses):
+            raise ValueError(f"{checkpoint} {'holds' if poses else 'holds no'} pose corrections, and this run "
+                             f"{'learns' if self.model.pose_refinement.enabled else 'learns none'} "
+                             "(--pipeline.model.camera-optimizer.mode must be the global run's)")
+        self.model.pose_refinement.load_state_dict(poses, strict=True)
         CONSOLE.log(f"global model loaded from {checkpoint}")
 
     @property
@@ -418,13 +425,18 @@ class ScalarPipeline(PipelineBase):
         gc.collect()
 
     def get_train_loss_dict(self, step: int):
-        """One training batch of the phase at ``step``, through that phase's model."""
+        """One training batch of the phase at ``step`` (its rays moved by the pose corrections), through that
+        phase's model."""
         phase = self._enter_phase(step)
         ray_bundle, batch = self._train_datamanager(phase).next_train(step)
+        assert isinstance(ray_bundle, RayBundle), "scalar-nerf trains on ray batches (a pixel-sampling datamanager)"
+        self.model.refine_training_rays(ray_bundle, phase.block)
         model = self.model.phase_model(phase.block)
         outputs = model(ray_bundle)
         metrics_dict = model.get_metrics_dict(outputs, batch)
         loss_dict = model.get_loss_dict(outputs, batch, metrics_dict)
+        if phase.block is None:
+            self.model.add_pose_terms(loss_dict, metrics_dict)
         metrics_dict["phase"] = torch.tensor(-1.0 if phase.block is None else float(phase.block))
         return outputs, loss_dict, metrics_dict
 

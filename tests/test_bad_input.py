@@ -287,6 +287,8 @@ OPTION_CASES = [
     ("pipeline.model.idw_gamma", math.inf, None, "--pipeline.model.idw-gamma inf: must be a finite number >= 0"),
     ("pipeline.model.guard_accumulation", 0.0, None, "--pipeline.model.guard-accumulation 0: must be a number in (0, 1]"),
     ("pipeline.model.guard_accumulation", 1.5, None, "--pipeline.model.guard-accumulation 1.5: must be a number in (0, 1]"),
+    ("pipeline.model.pose_gradient_share", 0.0, None, "--pipeline.model.pose-gradient-share 0: must be a number in (0, 1]"),
+    ("pipeline.model.camera_optimizer.mode", "SO3", None, "--pipeline.model.camera-optimizer.mode SO3: must be off, SO3xR3 or SE3"),
     ("max_num_iterations", -1, None, "--max-num-iterations -1"),
     ("steps_per_save", 0, None, "--steps-per-save 0"),
 ]

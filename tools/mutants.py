@@ -244,6 +244,21 @@ MUTANTS: Tuple[Mutant, ...] = (
         why="a run of one model decays once instead of restarting at the blocks' rates: the demo ends 1.4 dB lower",
         tests=node_ids("cli", "test_demo_command_reaches_the_psnr_the_readme_promises"), slow=True,
     ),
+    Mutant(
+        name="pose-gradient-cut", path="scalar_nerfstudio/models/scalar_model.py",
+        old="density, geo = self.field.density_at_unit(kept, encoding=encoding, gradient_rows=rows)",
+        new="density, geo = self.field.density_at_unit(kept.detach(), encoding=encoding, gradient_rows=rows)",
+        why="pose refinement gets no gradient (the kernels' positions carry none): a wrong pose is never corrected",
+        tests=node_ids("pose_refinement", "test_corrections_are_learnt_by_the_global_phase_kept_by_the_blocks_and_bring_a_moved_camera_back"),
+        slow=True,
+    ),
+    Mutant(
+        name="blocks-learn-poses", path="scalar_nerfstudio/models/scene_model.py",
+        old="learn=block is None)", new="learn=True)",
+        why="each block's phase moves the cameras the global model was fitted to, and the next block starts from them",
+        tests=node_ids("pose_refinement", "test_corrections_are_learnt_by_the_global_phase_kept_by_the_blocks_and_bring_a_moved_camera_back"),
+        slow=True,
+    ),
     # ------------------------------------------------------------------------------------------ rendering, sampling
     Mutant(
         name="weights-no-transmittance", path=PARTS + "rendering.py",

@@ -50,6 +50,9 @@ from scalar_nerfstudio.seam.trainer import TrainerBase, set_progress_total, star
 #: The template whose rate a global group restarts at in a run of one model (``global_restart_fraction``):
 #: the rate a block's group starts with.
 RESTART_TEMPLATES: Dict[str, str] = {"encoder": "block_encoder", "decoder": "block_decoder"}
+#: Templates of global groups that decay once over the global phase, neither held nor restarted: the pose
+#: corrections, which the blocks use as they are and do not follow.
+ONE_DECAY_TEMPLATES = frozenset({"camera_opt"})
 
 
 @dataclass
@@ -241,7 +244,8 @@ class ScalarTrainer(TrainerBase):
         The global model's rate is held after its warm-up when the pipeline says so
         (``holds_global_learning_rate``: blocks follow, ``--pipeline.lr-schedule restart``); in a run of
         one model it is held and then restarts at the rate of the group's :data:`RESTART_TEMPLATES`
-        template (``global_restart_fraction``, ``--pipeline.one-model-restart``).
+        template (``global_restart_fraction``, ``--pipeline.one-model-restart``). The pose corrections
+        (:data:`ONE_DECAY_TEMPLATES`) decay once over the global phase.
         """
         _ = self.phased_pipeline  # checked against the contract before nerfstudio's groups are read
         param_groups = self.pipeline.get_param_groups()
@@ -271,8 +275,9 @@ class ScalarTrainer(TrainerBase):
             return None
         start, length = (phase.start_step, phase.num_steps) if phase is not None else (0, self._planned_total(pipeline))
         is_global = phase is not None and phase.block is None
-        held = is_global and pipeline.holds_global_learning_rate
-        restart = pipeline.global_restart_fraction if is_global else 0.0
+        follows_global = is_global and template not in ONE_DECAY_TEMPLATES
+        held = follows_global and pipeline.holds_global_learning_rate
+        restart = pipeline.global_restart_fraction if follows_global else 0.0
         restart_factor = 1.0
         if restart > 0:  # one model: restart at the rate a block's group starts with
             restart_template = self._optimizer_template(group, RESTART_TEMPLATES.get(template, template))

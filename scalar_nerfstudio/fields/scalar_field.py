@@ -380,26 +380,38 @@ class ScalarField(nn.Module):
         """bfloat16 autocast for the decoder on CPU when configured; a no-op context otherwise."""
         return torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.cpu_bfloat16 and like.device.type == "cpu")
 
-    def density_at_unit(self, unit_positions: Tensor, encoding: Optional[Tensor] = None) -> tuple[Tensor, Tensor]:
+    def density_at_unit(
+        self, unit_positions: Tensor, encoding: Optional[Tensor] = None, *, gradient_rows: Optional[Tensor] = None
+    ) -> tuple[Tensor, Tensor]:
         """[N, 3] contracted unit-cube positions -> ([N] float32 density, [N, geo_feat_dim] features).
 
         When ``unit_positions`` requires grad (and grad mode is on), the density is differentiable
-        with respect to the positions (for surface normals): the encoding then runs through
-        :func:`encode_with_position_gradients` and the decoder in float32 (no autocast). Otherwise
-        the fast kernels (positions get no gradient) and the configured decoder precision are used.
+        with respect to the positions: without ``encoding`` (surface normals) the encoding runs through
+        :func:`encode_with_position_gradients` (no table gradient) and the decoder in float32 (no
+        autocast); with it (a training step that refines poses) the table gets the kernels' gradient and
+        the positions that function's. Otherwise the fast kernels (positions get no gradient) and the
+        configured decoder precision are used.
 
         Args:
             unit_positions: [N, 3] contracted unit-cube positions.
             encoding: [N, L * F] ``self.encoder(unit_positions)`` computed earlier without autograd
                 (a training step's no-grad pass): it is not computed again, and the table still
                 gets its gradient (:meth:`HashGridEncoding.with_table_gradient`).
+            gradient_rows: [G] with ``encoding``: the rows whose positions get a gradient (the others none);
+                None: every row.
         """
-        if unit_positions.requires_grad and torch.is_grad_enabled():
+        position_gradients = unit_positions.requires_grad and torch.is_grad_enabled()
+        if position_gradients and encoding is None:
             features = encode_with_position_gradients(self.encoder, unit_positions)
             with torch.autocast(device_type=features.device.type, enabled=False):
                 return self.decoder.density(features)
         if encoding is not None:
-            features = self.encoder.with_table_gradient(unit_positions, encoding)
+            features = self.encoder.with_table_gradient(unit_positions.detach(), encoding)
+            if position_gradients:  # the kernels' values and table gradient, the positions' gradient from torch
+                rows = unit_positions if gradient_rows is None else unit_positions[gradient_rows]
+                through = encode_with_position_gradients(self.encoder, rows)
+                through = through - through.detach()  # zero, with the positions' gradient
+                features = features + through if gradient_rows is None else features.index_add(0, gradient_rows, through)
         else:
             features = self.encoder(unit_positions)
         with self._decoder_autocast(features):

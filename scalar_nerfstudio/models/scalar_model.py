@@ -144,6 +144,10 @@ class ScalarModelConfig(ModelConfig):
     eval_num_rays_per_chunk: Optional[int] = None
     """Rays per chunk of a camera render (eval, ns-render, the viewer); None: by the device it renders
     on (2^16 on the CPU, 2^18 on CUDA: ``scalar_nerfstudio.device_sizes``)."""
+    # The position gradient runs through the hash grid in torch (the kernels give none): on all samples, +33 % a run.
+    pose_gradient_share: float = 0.25
+    """With pose refinement (``--pipeline.model.camera-optimizer.mode``): the share of a batch's rays (0-1] whose
+    samples give the pose corrections their gradient."""
     render_normals: RenderNormals = "rays"
     """When the ``normals`` output (in [0, 1]) is computed outside training: "rays" for ray batches
     (ns-export) but not camera images, "always" also for camera images (the viewer), "never"."""
@@ -323,7 +327,12 @@ class ScalarModel(NormalsOutput, Model):
 
         if torch.is_grad_enabled():  # training: the density of the kept samples again, with gradients
             sample_ids, encoding = self.visibility().visible(unit_positions, deltas)  # [M] flat indices into R*S, [M, L*F]
-            density, geo = self.field.density_at_unit(unit_positions[sample_ids], encoding=encoding)
+            kept = unit_positions[sample_ids]
+            if origins.requires_grad or directions.requires_grad:  # refined poses: their gradient through kept samples
+                kept, rows = self._with_pose_gradient(samples, sample_ids, kept)
+                density, geo = self.field.density_at_unit(kept, encoding=encoding, gradient_rows=rows)
+            else:
+                density, geo = self.field.density_at_unit(kept, encoding=encoding)
         else:  # rendering: one field pass over the occupied samples serves the occlusion test and the colour
             sample_ids, density, geo = self.visibility().visible_with_features(unit_positions, deltas)
         ray_ids = torch.div(sample_ids, num_samples, rounding_mode="floor")
@@ -344,6 +353,16 @@ class ScalarModel(NormalsOutput, Model):
             weights = dense_weights(rendered, sample_ids, num_rays, num_samples).detach()
             outputs["normals"] = normals_to_unit_interval(self._ray_normals(samples, sample_ids, weights))
         return outputs
+
+    def _with_pose_gradient(self, samples: RaySamples, sample_ids: Tensor, kept: Tensor) -> Tuple[Tensor, Optional[Tensor]]:
+        """``kept`` [M, 3] (kernel positions) with the samples of every (1 / ``pose_gradient_share``)-th ray recomputed
+        from the rays, so that their poses get a gradient; and those rows [G] (None: all)."""
+        stride = max(1, round(1.0 / self.config.pose_gradient_share))
+        if stride == 1:
+            return self.world_to_unit_cube(samples.world_positions(sample_ids)), None
+        rows = torch.nonzero(torch.div(sample_ids, samples.t_mid.shape[1], rounding_mode="floor") % stride == 0).squeeze(-1)
+        moved = self.world_to_unit_cube(samples.world_positions(sample_ids[rows]))
+        return kept.index_put((rows,), moved), rows
 
     @torch.no_grad()
     def render_depth_only(self, ray_bundle: RayBundle, source: Literal["field", "grid"] = "field") -> Dict[str, Tensor]:

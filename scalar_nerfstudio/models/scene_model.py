@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any, Dict, List, Literal, Optional, Tuple, Type
 
 import torch
+from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
 from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.models.base_model import Model
@@ -49,6 +50,7 @@ from scalar_nerfstudio.models.block_start import (
 from scalar_nerfstudio.models.block_store import BlockStore
 from scalar_nerfstudio.models.fused_render import FusedRenderer, FusionSettings
 from scalar_nerfstudio.models.normals import NormalsOutput
+from scalar_nerfstudio.models.pose_refinement import PoseRefinement
 from scalar_nerfstudio.models.scalar_model import ScalarModel, ScalarModelConfig, near_far_collider
 from scalar_nerfstudio.seam import PIPELINE_MODEL_KEY_PREFIX
 
@@ -103,6 +105,10 @@ class ScalarSceneModelConfig(ScalarModelConfig):
     max_resident_blocks: int = 8
     """Finished blocks kept in memory at most (the others are on disk in RUN/block_models/ and loaded
     when a render needs them); the training block comes on top."""
+    camera_optimizer: CameraOptimizerConfig = field(default_factory=lambda: CameraOptimizerConfig(mode="off"))
+    """Pose refinement (nerfstudio's camera optimiser; its rate: --optimizers.camera-opt): a correction per
+    training image learnt in the global phase and applied, as learnt, in the blocks' phases; held-out views
+    keep their poses. mode SO3xR3 or SE3 turns it on."""
 
 
 @dataclass(frozen=True)
@@ -112,7 +118,7 @@ class ParamGroup:
     block: Optional[int]
     """None: the global model; k: block k's model."""
     part: str
-    """``encoder``, ``decoder`` or ``appearance``."""
+    """``encoder``, ``decoder`` or ``appearance``; ``camera_opt`` (block None): the pose corrections."""
 
     @property
     def name(self) -> str:
@@ -193,6 +199,9 @@ class ScalarSceneModel(NormalsOutput, Model):
         self.register_buffer(
             "block_radii", torch.tensor([block_region(b)[1] for b in self.split.blocks], dtype=torch.float32), persistent=False
         )
+        self.pose_refinement = PoseRefinement(self.config.camera_optimizer, num_images=self.num_train_data)
+        """The training images' pose corrections (:mod:`~scalar_nerfstudio.models.pose_refinement`)."""
+        self._block_images = {b.index: torch.as_tensor(b.image_indices, dtype=torch.long) for b in self.split.blocks}
         observation = self.kwargs.get("block_observation")
         self.register_buffer("block_observation", None if observation is None else observation.bool(), persistent=False)
         """[K, G^3] bool: the cells of a coarse grid each block's cameras observe (None: not known)."""
@@ -211,6 +220,12 @@ class ScalarSceneModel(NormalsOutput, Model):
     def global_state(cls, pipeline_state: Dict[str, Tensor]) -> Dict[str, Tensor]:
         """The global model's own state dict, out of a pipeline checkpoint's ``pipeline`` state."""
         prefix = f"{cls.PIPELINE_KEY_PREFIX}global_model."
+        return {k[len(prefix):]: v for k, v in pipeline_state.items() if k.startswith(prefix)}
+
+    @classmethod
+    def pose_state(cls, pipeline_state: Dict[str, Tensor]) -> Dict[str, Tensor]:
+        """The pose corrections' state dict (empty: the run learnt none), out of a pipeline checkpoint's state."""
+        prefix = f"{cls.PIPELINE_KEY_PREFIX}pose_refinement."
         return {k[len(prefix):]: v for k, v in pipeline_state.items() if k.startswith(prefix)}
 
     @classmethod
@@ -325,9 +340,24 @@ class ScalarSceneModel(NormalsOutput, Model):
         """Every parameter group with the model it belongs to (:class:`ParamGroup`), in
         :meth:`get_param_groups` order."""
         groups = [(ParamGroup(None, part), params) for part, params in self.global_model.get_param_groups().items()]
+        if self.pose_refinement.enabled:
+            groups.append((ParamGroup(None, "camera_opt"), list(self.pose_refinement.parameters_to_learn())))
         for index in self.block_ids:
             groups += [(ParamGroup(index, part), params) for part, params in self.store.shell(index).get_param_groups().items()]
         return groups
+
+    def refine_training_rays(self, ray_bundle: RayBundle, block: Optional[int]) -> None:
+        """Move a training batch of the phase of ``block`` (None: the global phase, whose batch indexes the
+        capture's images; k: block k's, indexing its images) by the pose corrections, in place: learnt in
+        the global phase, applied as they are in a block's."""
+        images = None if block is None else self._block_images[block]
+        self.pose_refinement.apply(ray_bundle, image_indices=images, learn=block is None)
+
+    def add_pose_terms(self, loss_dict: Dict[str, Tensor], metrics_dict: Dict[str, Tensor]) -> None:
+        """The pose corrections' regulariser and metrics, for a global phase's step (none when disabled)."""
+        if self.pose_refinement.enabled:
+            self.pose_refinement.add_losses(loss_dict)
+            self.pose_refinement.add_metrics(metrics_dict)
 
     # --------------------------------------------------------------------------- rendering
     def set_fusion(self, mode: str | ParsedFusionMode) -> None:
