@@ -45,11 +45,15 @@ class PoseRefinement(nn.Module):
         self.optimizer: CameraOptimizer = config.setup(num_cameras=num_images, device="cpu")
         """nerfstudio's module: ``pose_adjustment`` [num_images, 6] when enabled."""
 
-    def corrections(self, indices: Tensor) -> Tensor:
-        """[N] training-image indices -> [N, 3, 4] their corrections (rotation | translation, world frame), with
-        the mean adjustment over all training images removed."""
+    def centred_adjustment(self) -> Tensor:
+        """[num_images, 6] the adjustments as applied: their mean over all training images removed."""
         adjustment = self.optimizer.pose_adjustment
-        centred = adjustment[indices] - adjustment.mean(dim=0)
+        return adjustment - adjustment.mean(dim=0)
+
+    def corrections(self, indices: Tensor) -> Tensor:
+        """[N] training-image indices -> [N, 3, 4] their corrections (rotation | translation, world frame), from
+        :meth:`centred_adjustment`."""
+        centred = self.centred_adjustment()[indices]
         return exp_map_SO3xR3(centred) if self.optimizer.config.mode == "SO3xR3" else exp_map_SE3(centred)
 
     def parameters_to_learn(self) -> Sequence[nn.Parameter]:
@@ -84,8 +88,7 @@ class PoseRefinement(nn.Module):
     def add_metrics(self, metrics_dict: Dict[str, Tensor]) -> None:
         """Add the applied (centred) corrections' mean and largest translation (world units of the normalised scene)
         and rotation (degrees), under nerfstudio's names (``camera_opt_translation_mean`` ...)."""
-        adjustment = self.optimizer.pose_adjustment.detach()
-        centred = adjustment - adjustment.mean(dim=0)
+        centred = self.centred_adjustment().detach()
         translation, rotation = centred[:, :3].norm(dim=-1), torch.rad2deg(centred[:, 3:].norm(dim=-1))
         metrics_dict.update(camera_opt_translation_mean=translation.mean(), camera_opt_translation_max=translation.max(),
                             camera_opt_rotation_mean=rotation.mean(), camera_opt_rotation_max=rotation.max())

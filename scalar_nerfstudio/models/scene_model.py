@@ -219,13 +219,17 @@ class ScalarSceneModel(NormalsOutput, Model):
     @classmethod
     def global_state(cls, pipeline_state: Dict[str, Tensor]) -> Dict[str, Tensor]:
         """The global model's own state dict, out of a pipeline checkpoint's ``pipeline`` state."""
-        prefix = f"{cls.PIPELINE_KEY_PREFIX}global_model."
-        return {k[len(prefix):]: v for k, v in pipeline_state.items() if k.startswith(prefix)}
+        return cls._submodule_state(pipeline_state, "global_model")
 
     @classmethod
     def pose_state(cls, pipeline_state: Dict[str, Tensor]) -> Dict[str, Tensor]:
         """The pose corrections' state dict (empty: the run learnt none), out of a pipeline checkpoint's state."""
-        prefix = f"{cls.PIPELINE_KEY_PREFIX}pose_refinement."
+        return cls._submodule_state(pipeline_state, "pose_refinement")
+
+    @classmethod
+    def _submodule_state(cls, pipeline_state: Dict[str, Tensor], name: str) -> Dict[str, Tensor]:
+        """The state dict of this model's submodule ``name``, out of a pipeline checkpoint's state."""
+        prefix = f"{cls.PIPELINE_KEY_PREFIX}{name}."
         return {k[len(prefix):]: v for k, v in pipeline_state.items() if k.startswith(prefix)}
 
     @classmethod
