@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import resource
 import statistics
 import subprocess
@@ -30,12 +31,16 @@ from typing import Any, Dict, List
 
 
 def _peak_rss_of(command: List[str]) -> Dict[str, Any]:
-    """Run ``command`` in a child and return its peak RSS (this wrapper runs once per measurement)."""
+    """Run ``command`` in a child; its own peak RSS (``wait4``: not the largest of every child so far) and seconds."""
     start = time.perf_counter()
-    result = subprocess.run(command, capture_output=True, text=True, check=False)
-    if result.returncode != 0:
-        raise SystemExit(f"{' '.join(command[:6])} ... failed:\n{result.stdout[-3000:]}\n{result.stderr[-3000:]}")
-    return {"peak_rss_mib": round(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024), "seconds": round(time.perf_counter() - start, 1)}
+    with tempfile.TemporaryFile("w+") as log:
+        child = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, text=True)
+        _, status, usage = os.wait4(child.pid, 0)
+        child.returncode = os.waitstatus_to_exitcode(status)  # reaped here: Popen must not wait for it again
+        if child.returncode != 0:
+            log.seek(0)
+            raise SystemExit(f"{' '.join(command[:6])} ... failed:\n{log.read()[-6000:]}")
+    return {"peak_rss_mib": round(usage.ru_maxrss / 1024), "seconds": round(time.perf_counter() - start, 1)}
 
 
 def train_command(scene: Path, output: Path, args: argparse.Namespace, num_blocks: int) -> List[str]:
