@@ -256,6 +256,77 @@ def test_a_version_1_scene_loads_as_the_walk_it_was(tiny_scene: Path, tmp_path: 
     assert town.num_buildings == load_town(tiny_scene).num_buildings
 
 
+def test_a_version_2_scene_loads_with_the_point_sampled_textures_it_was_written_with(tiny_scene: Path, tmp_path: Path) -> None:
+    """scene.json of generator version 2 has no textures key: its frames sampled each colour at a point."""
+    content = json.loads((tiny_scene / "scene.json").read_text())
+    assert content["version"] == 3 and content["config"]["textures"] == "filtered"
+    del content["config"]["textures"]
+    content["version"] = 2
+    (tmp_path / "scene.json").write_text(json.dumps(content))
+    assert load_town(tmp_path).config.textures == "point-sampled"
+
+
+def test_point_sampled_textures_render_version_2s_frames() -> None:
+    """``--textures point-sampled`` gives the frames generator version 2 wrote (kept in tests/fixtures, rendered by
+    version 2; within one 8-bit level on 0.1 % of the pixels at most, for another CPU's last bit), and the
+    default, filtered, textures differ from them."""
+    kept = np.load(Path(__file__).parent / "fixtures" / "town-version-2-frames.npz")
+    for capture in ("aerial", "rig"):
+        frames = {}
+        for textures in ("point-sampled", "filtered"):
+            town = build_town(TownConfig(num_images=4, width=48, height=36, blocks_x=2, blocks_y=2, capture=capture, seed=1, textures=textures))
+            frames[textures] = (render_town_image(town, town_camera_poses(town)[1])[0] * 255.0 + 0.5).astype(np.uint8)
+        difference = np.abs(frames["point-sampled"].astype(np.int16) - kept[capture])
+        assert difference.max() <= 1 and np.mean(difference > 0) <= 1e-3, capture
+        assert np.mean(np.abs(frames["filtered"].astype(np.int16) - kept[capture])) > 1.0, capture
+
+
+def test_filtered_textures_average_the_detail_a_sample_covers() -> None:
+    """A sample's colour is the surface averaged over its footprint: seen from afar, asphalt, roofs and facades
+    keep their mean colour while the speckle finer than a sample fades (the aliasing that changes with the
+    view); a footprint of 0 is the point itself. Colours stay finite in [0, 1] for any footprint."""
+    from scalar_nerfstudio.scenes.town.materials import facade_colour, ground_colour, roof_colour
+
+    town = build_town(TownConfig(num_images=4, width=16, height=12, blocks_x=2, blocks_y=2, seed=1, textures="point-sampled"))
+    rng = np.random.default_rng(0)
+    x, y = rng.uniform(-60.0, 60.0, 20000), rng.uniform(-60.0, 60.0, 20000)
+    across = np.abs(x - town.street_x[np.abs(x[:, None] - town.street_x[None]).argmin(axis=1)])
+    along = np.abs(y - town.street_y[np.abs(y[:, None] - town.street_y[None]).argmin(axis=1)])
+    lane = (across > 0.3) & (across < 1.5) & (along > town.config.street_width / 2.0 + 4.0)  # asphalt, no markings
+    x, y = x[lane], y[lane]
+    zeros = np.zeros(len(x), dtype=np.int64)
+    roof_x = rng.uniform(town.lo[0, 0] + 0.5, town.hi[0, 0] - 0.5, len(x))  # building 0's roof, within its coping
+    roof_y = rng.uniform(town.lo[0, 1] + 0.5, town.hi[0, 1] - 0.5, len(x))
+
+    def colours(footprint: float, shift: float = 0.0):
+        f, sx, sy = np.full(len(x), footprint), x + shift, y + shift
+        return {
+            "asphalt": ground_colour(town, sx, sy, footprint=f),
+            "roof": roof_colour(town, zeros, x=roof_x + shift, y=roof_y + shift, footprint=f),
+            "facade": facade_colour(town, zeros, zeros, u=np.abs(sx) % 8.0, v=1.0 + np.abs(sy) % 8.0, width=np.full(len(x), 9.0), footprint=f),
+        }
+
+    point, far = colours(0.0), colours(0.2)
+    for name in point:
+        assert np.abs(far[name].mean(axis=0) / point[name].mean(axis=0) - 1.0).max() < 0.03, name
+    # The asphalt's 4 cm speckle and the roof's 5 cm gravel: a point against one 3 cm away.
+    near_point, near_far = colours(0.0, shift=0.03), colours(0.4, shift=0.03)
+    far = colours(0.4)
+    for name in ("asphalt", "roof"):
+        assert np.mean(np.abs(far[name] - near_far[name])) < 0.25 * np.mean(np.abs(point[name] - near_point[name])), name
+    for footprint in (0.0, 0.2, 0.8, 1e9):
+        for name, colour in colours(footprint).items():
+            assert np.isfinite(colour).all() and colour.min() >= 0.0 and colour.max() <= 1.0, (name, footprint)
+
+    # Rays from 50 m above the asphalt, 3 cm apart: a sample 1/600 rad wide (a 600 px focal length) covers 8 cm of it.
+    origins = np.stack([x, y, np.full(len(x), 50.0)], axis=1)
+    down = np.broadcast_to(np.array([0.0, 0.0, -1.0]), origins.shape)
+    shifted = origins + np.array([0.03, 0.03, 0.0])
+    speckle = {angle: np.mean(np.abs(render_town_rays(origins, down, town, sample_angle=angle)[0]
+                                     - render_town_rays(shifted, down, town, sample_angle=angle)[0])) for angle in (0.0, 1.0 / 600.0)}
+    assert speckle[1.0 / 600.0] < 0.6 * speckle[0.0]
+
+
 def test_cli_capture_options(tmp_path: Path) -> None:
     result = _cli("--output", str(tmp_path / "walk"), "--num-images", "3", "--width", "16", "--height", "12", "--blocks-x", "1", "--blocks-y", "1",
                   "--capture", "walk", "--quiet")

@@ -79,6 +79,10 @@ def build_parser() -> argparse.ArgumentParser:
     town.add_argument("--rig-headings", type=float, nargs="+", default=None, metavar="DEG",
                       help="rig cameras' headings in degrees from the driving direction, positive to the left (default 30 -30)")
     town.add_argument("--supersample", type=_positive_int, default=None, help="colour samples per pixel along each axis (default 1)")
+    town.add_argument("--textures", choices=("filtered", "point-sampled"), default=None,
+                      help="filtered: each sample averages the detail finer than the surface it covers, as a camera does, and "
+                           "the ground and roofs carry weathering (default); "
+                           "point-sampled: the colour at each sample's point (generator version 2's pixels)")
     town.add_argument("--photos", type=Path, default=None, metavar="DIR",
                       help="also write the frames to DIR as JPEG photos with their camera's GPS position and focal length in the EXIF "
                            "(for trying scalar-nerf-process-data on a capture of known poses)")
@@ -123,7 +127,8 @@ def _town(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
 
     options = {}
     for key, name in (("num_images", "num_images"), ("width", "width"), ("height", "height"), ("block_size", "block_size"),
-                      ("street_width", "street_width"), ("road_width", "road_width"), ("fov", "fov_x_deg"), ("supersample", "supersample")):
+                      ("street_width", "street_width"), ("road_width", "road_width"), ("fov", "fov_x_deg"), ("supersample", "supersample"),
+                      ("textures", "textures")):
         if getattr(args, key) is not None:
             options[name] = getattr(args, key)
     if args.capture is not None:
@@ -193,7 +198,8 @@ def _automatic_blocks_line(config, poses) -> str:
 def _courtyard(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
     from scalar_nerfstudio.scenes.courtyard import write_scene
 
-    town_only = [f"--{name.replace('_', '-')}" for name in ("blocks_x", "blocks_y", "extent", "block_size", "street_width", "road_width", "fov", "supersample", "capture", "rig_headings", "aerial_altitude", "photos")
+    town_only = [f"--{name.replace('_', '-')}" for name in ("blocks_x", "blocks_y", "extent", "block_size", "street_width", "road_width", "fov", "supersample", "textures", "capture", "rig_headings", "aerial_altitude",
+                                                          "photos")
                  if getattr(args, name) is not None]
     if town_only:
         parser.error(f"{', '.join(town_only)}: only for --scene town")

@@ -13,7 +13,7 @@ from typing import Any, Dict, Tuple
 import numpy as np
 
 __all__ = [
-    "CAPTURES", "DEPTH_PNG_MAX_M", "DEPTH_PNG_UNIT_M", "GENERATOR_ID", "GENERATOR_VERSION", "READABLE_VERSIONS", "TownConfig",
+    "CAPTURES", "DEPTH_PNG_MAX_M", "TEXTURES", "DEPTH_PNG_UNIT_M", "GENERATOR_ID", "GENERATOR_VERSION", "READABLE_VERSIONS", "TownConfig",
     "blocks_for_extent",
 ]
 
@@ -21,12 +21,15 @@ __all__ = [
 #: format, not a module to import; kept so that scenes written before stay readable and identical.
 GENERATOR_ID = "scalar_nerfstudio.data.town_scene"
 #: Generator version written to scene.json (bump when the same options give other pixels).
-#: Version 2 added the ``rig`` capture (the default); version 1 scenes (``walk``) still load.
-GENERATOR_VERSION = 2
+#: Version 2 added the ``rig`` capture (the default); version 1 scenes (``walk``) still load. Version 3
+#: filters the textures by each sample's footprint (``textures``); ``point-sampled`` gives version 2's pixels.
+GENERATOR_VERSION = 3
 #: Generator versions whose scene.json :func:`load_town` reads.
-READABLE_VERSIONS = (1, 2)
+READABLE_VERSIONS = (1, 2, 3)
 #: The ways the cameras capture the town (:attr:`TownConfig.capture`).
 CAPTURES = ("rig", "walk", "aerial", "aerial+rig")
+#: How surface detail meets the pixels (:attr:`TownConfig.textures`).
+TEXTURES = ("filtered", "point-sampled")
 #: Metres per unit of the 16-bit depth PNGs (nerfstudio's default ``depth_unit_scale_factor``).
 DEPTH_PNG_UNIT_M = 1e-3
 #: The largest depth a 16-bit PNG in millimetres holds; farther points are written as 0 (unknown).
@@ -77,6 +80,11 @@ class TownConfig:
     supersample: int = 1
     """Colour samples per pixel along each axis (ss x ss, averaged: anti-aliasing); depth is the
     pixel centre's."""
+    textures: str = "filtered"
+    """How surface detail meets the pixels: ``filtered`` (each colour sample averages the detail finer than the
+    surface it covers, and the ground and roofs carry weathering at 0.3-2 m: what a camera records, and what structure-from-motion
+    matches between photos) or ``point-sampled`` (each sample takes the colour at its
+    point, a speckle that changes with the view: generator version 2's pixels)."""
     seed: int = 0
     """Seed of the buildings, the textures and the walk; the same seed gives byte-identical files."""
 
@@ -106,6 +114,8 @@ class TownConfig:
         low, high = self.camera_height
         if not (0.1 <= low <= high < 6.0):
             raise ValueError(f"TownConfig.camera_height must be a range (low, high) with 0.1 <= low <= high < 6 m, got {self.camera_height!r}")
+        if self.textures not in TEXTURES:
+            raise ValueError(f"TownConfig.textures must be one of {list(TEXTURES)}, got {self.textures!r}")
         if self.capture not in CAPTURES:
             raise ValueError(f"TownConfig.capture must be one of {list(CAPTURES)}, got {self.capture!r}")
         altitude = self.aerial_altitude
@@ -155,6 +165,7 @@ class TownConfig:
         if "rig_headings" in values:
             values["rig_headings"] = tuple(float(v) for v in values["rig_headings"])
         values.setdefault("capture", "walk")  # scenes of generator version 1 (no capture key) walked
+        values.setdefault("textures", "point-sampled")  # scenes of generator versions 1 and 2 (no textures key)
         return cls(**values)
 
 

@@ -4,9 +4,18 @@ surface it lies on (building, face), so every view agrees (multi-view consistent
 Detail at several scales: asphalt speckle (4 cm), bricks (7.5 x 22.5 cm), pavement tiles and sign
 lettering (about 10 cm), window frames and mullions, windows (about 1 m), floors (about 3 m) and
 whole buildings (10-40 m). The noise is an integer hash of lattice coordinates, salted per town.
+
+A camera's pixel averages the surface over its footprint. With ``TownConfig.textures == "filtered"`` each
+point carries the width of the surface its sample covers (``footprint``, metres) and detail finer than that
+is averaged (:func:`_faded`, :func:`_lines`): a surface far away looks the same from every view instead of
+a speckle that changes with the view (aliasing, which structure-from-motion cannot match), and the ground
+and roofs carry weathering at 0.3-2 m. A footprint of 0 samples the point itself: the version-2 pixels
+(``"point-sampled"``).
 """
 
 from __future__ import annotations
+
+from typing import Optional
 
 import numpy as np
 
@@ -49,12 +58,64 @@ def _value_noise(salt: int, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     return (a * (1 - fu) + b * fu) * (1 - fv) + (c * (1 - fu) + d * fu) * fv
 
 
-def facade_colour(town: Town, building: np.ndarray, face: np.ndarray, *, u: np.ndarray, v: np.ndarray, width: np.ndarray) -> np.ndarray:
+def _faded(values: np.ndarray, cell: float, footprint: np.ndarray) -> np.ndarray:
+    """A per-cell random term ([P] values uniform in [0, 1), cells of ``cell`` metres) averaged over a
+    ``footprint`` ([P] metres): the mean of about (footprint / cell)^2 cells varies cell / footprint as
+    much about 0.5. Where the footprint is within a cell (or 0) the values are returned as they are."""
+    fade = np.minimum(1.0, cell / np.maximum(footprint, 1e-12))
+    return np.where(fade < 1.0, 0.5 + (values - 0.5) * fade, values)
+
+
+def _lines(x: np.ndarray, period, width, footprint: np.ndarray, point: Optional[np.ndarray] = None) -> np.ndarray:
+    """Coverage in [0, 1] of lines ``width`` wide that start every ``period`` (where ``x mod period <
+    width``), averaged over a box ``footprint`` wide about ``x`` ([P]; scalars or [P] period and width).
+    A footprint of 0 gives the point test itself (0 or 1): ``point`` ([P] bool) where the caller has it
+    computed its own way (the version-2 pixels), else ``x mod period < width``."""
+    point = (np.mod(x, period) < width if point is None else point).astype(np.float64)
+    half = np.asarray(footprint) / 2.0
+
+    def covered(t: np.ndarray) -> np.ndarray:  # line length in [0, t]
+        k = np.floor(t / period)
+        return k * width + np.minimum(t - k * period, width)
+
+    box = (covered(x + half) - covered(x - half)) / np.maximum(2.0 * half, 1e-12)
+    return np.where(half > 1e-9, np.clip(box, 0.0, 1.0), point)
+
+
+def _either(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Coverage of the union of two line sets ([P] each) taken as independent (1 or 0 where either is exact)."""
+    return 1.0 - (1.0 - a) * (1.0 - b)
+
+
+def _dim(coverage: np.ndarray, factor: float) -> np.ndarray:
+    """[P] brightness of a surface with ``coverage`` of it darkened to ``factor``: exactly 1 at 0 and ``factor`` at 1."""
+    return (1.0 - coverage) + factor * coverage
+
+
+def _mix(colour: np.ndarray, other, coverage: np.ndarray) -> np.ndarray:
+    """[P, 3] ``colour`` with ``coverage`` ([P] in [0, 1]) of ``other`` ([3] or [P, 3]): exactly ``colour`` at 0
+    and ``other`` at 1."""
+    return colour * (1.0 - coverage)[:, None] + np.asarray(other) * coverage[:, None]
+
+
+def _weathering(town: Town, salt: int, x: np.ndarray, y: np.ndarray, footprint: np.ndarray) -> np.ndarray:
+    """[P] brightness factor of stains and wear at 0.3, 0.8 and 2 m ("filtered" textures only; 1 otherwise):
+    the mid-scale marks that photos of real ground and roofs carry."""
+    if town.config.textures != "filtered":
+        return np.ones(len(x))
+    octaves = ((0.3, 0.25), (0.8, 0.4), (2.0, 0.35))
+    noise = sum(weight * _faded(_value_noise(salt + k, x / scale, y / scale), scale, footprint) for k, (scale, weight) in enumerate(octaves))
+    return 0.7 + 0.6 * noise
+
+
+def facade_colour(town: Town, building: np.ndarray, face: np.ndarray, *, u: np.ndarray, v: np.ndarray, width: np.ndarray,
+                  footprint: np.ndarray) -> np.ndarray:
     """Facade texture.
 
     Args:
         building: [P] building index; face: [P] face id (0..3) of that building.
         u: [P] metres along the facade from its left end; v: [P] height (z); width: [P] facade width.
+        footprint: [P] metres of facade a sample covers (0: the point itself; see the module's text).
 
     Returns:
         [P, 3] albedo.
@@ -73,30 +134,34 @@ def facade_colour(town: Town, building: np.ndarray, face: np.ndarray, *, u: np.n
     # Wall material at three scales.
     brick = style == 0
     if brick.any():
-        ub, vb, fb = u[brick], v[brick], fid[brick]
+        ub, vb, fb, fpb = u[brick], v[brick], fid[brick], footprint[brick]
         row = np.floor(vb / 0.075)
-        along = (ub + (row % 2) * 0.1125) / 0.225
+        shifted = ub + (row % 2) * 0.1125
+        along = shifted / 0.225
         col = np.floor(along)
-        mortar = ((along - col) * 0.225 < 0.012) | ((vb - row * 0.075) < 0.011)
-        tone = 0.78 + 0.3 * _hash(salt + 1, col, row, fb)
-        tint = 0.06 * (_hash(salt + 2, col, row, fb) - 0.5)
+        mortar = _either(_lines(shifted, 0.225, 0.012, fpb, point=(along - col) * 0.225 < 0.012),
+                         _lines(vb, 0.075, 0.011, fpb, point=(vb - row * 0.075) < 0.011))
+        tone = 0.78 + 0.3 * _faded(_hash(salt + 1, col, row, fb), 0.075, fpb)
+        tint = 0.06 * (_faded(_hash(salt + 2, col, row, fb), 0.075, fpb) - 0.5)
         bricks = wall[brick] * tone[:, None] + np.array([tint, 0.5 * tint, 0.0 * tint]).T
-        colour[brick] = np.where(mortar[:, None], np.array([0.74, 0.71, 0.65]), bricks)
+        colour[brick] = _mix(bricks, np.array([0.74, 0.71, 0.65]), mortar)
     plaster = style == 1
     if plaster.any():
-        up, vp, fp = u[plaster], v[plaster], fid[plaster]
-        tone = 0.86 + 0.1 * _value_noise(salt + 3, up / 0.8 + 7.0 * fp, vp / 0.8) + 0.06 * _hash(salt + 4, np.floor(up / 0.04), np.floor(vp / 0.04), fp)
-        groove = (vp < floor_h[plaster]) & ((vp % 0.45) < 0.025)  # rusticated ground floor
-        colour[plaster] = wall[plaster] * (tone * np.where(groove, 0.75, 1.0))[:, None]
+        up, vp, fp, fpp = u[plaster], v[plaster], fid[plaster], footprint[plaster]
+        speckle = _faded(_hash(salt + 4, np.floor(up / 0.04), np.floor(vp / 0.04), fp), 0.04, fpp)
+        tone = 0.86 + 0.1 * _value_noise(salt + 3, up / 0.8 + 7.0 * fp, vp / 0.8) + 0.06 * speckle
+        groove = (vp < floor_h[plaster]) * _lines(vp, 0.45, 0.025, fpp)  # rusticated ground floor
+        colour[plaster] = wall[plaster] * (tone * _dim(groove, 0.75))[:, None]
     concrete = style == 2
     if concrete.any():
-        uc, vc, fc = u[concrete], v[concrete], fid[concrete]
+        uc, vc, fc, fpc = u[concrete], v[concrete], fid[concrete], footprint[concrete]
         ph = floor_h[concrete] / 2.0
         pu, pv = np.floor(uc / 1.5), np.floor(vc / ph)
-        joint = ((uc - pu * 1.5) < 0.02) | ((vc - pv * ph) < 0.02)
-        hole = ((uc % 0.6) - 0.3) ** 2 + ((vc % 0.6) - 0.3) ** 2 < 0.022**2
-        tone = (0.84 + 0.16 * _hash(salt + 5, pu, pv, fc)) * (0.96 + 0.06 * _hash(salt + 6, np.floor(uc / 0.05), np.floor(vc / 0.05), fc))
-        colour[concrete] = wall[concrete] * (tone * np.where(joint | hole, 0.6, 1.0))[:, None]
+        joint = _either(_lines(uc, 1.5, 0.02, fpc, point=(uc - pu * 1.5) < 0.02), _lines(vc, ph, 0.02, fpc, point=(vc - pv * ph) < 0.02))
+        hole = (((uc % 0.6) - 0.3) ** 2 + ((vc % 0.6) - 0.3) ** 2 < 0.022**2).astype(np.float64)
+        hole = np.where(fpc > 0.044, np.pi * 0.022**2 / 0.36, hole)  # tie holes: their share of the wall, once unresolved
+        tone = (0.84 + 0.16 * _hash(salt + 5, pu, pv, fc)) * (0.96 + 0.06 * _faded(_hash(salt + 6, np.floor(uc / 0.05), np.floor(vc / 0.05), fc), 0.05, fpc))
+        colour[concrete] = wall[concrete] * (tone * _dim(_either(joint, hole), 0.6))[:, None]
 
     # Storeys: floor bands and the parapet.
     floor = np.floor(v / floor_h)
@@ -163,25 +228,28 @@ def facade_colour(town: Town, building: np.ndarray, face: np.ndarray, *, u: np.n
     return colour * (1.0 - 0.28 * np.exp(-v / 0.6))[:, None]
 
 
-def roof_colour(town: Town, building: np.ndarray, *, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """[P] building index and roof point (x, y) -> [P, 3] roof albedo (gravel, seams, vents, coping)."""
+def roof_colour(town: Town, building: np.ndarray, *, x: np.ndarray, y: np.ndarray, footprint: np.ndarray) -> np.ndarray:
+    """[P] building index, roof point (x, y) and footprint (metres a sample covers, 0: the point) -> [P, 3] roof
+    albedo (gravel, seams, vents, coping)."""
     salt = town.texture_salt
-    tone = (0.78 + 0.22 * _hash(salt + 20, np.floor(x / 0.05), np.floor(y / 0.05))) * (0.9 + 0.12 * _value_noise(salt + 21, x / 2.5, y / 2.5))
+    gravel = _faded(_hash(salt + 20, np.floor(x / 0.05), np.floor(y / 0.05)), 0.05, footprint)
+    tone = (0.78 + 0.22 * gravel) * (0.9 + 0.12 * _value_noise(salt + 21, x / 2.5, y / 2.5)) * _weathering(town, salt + 200, x, y, footprint)
     colour = town.roof[building] * tone[:, None]
-    seam = ((x % 2.0) < 0.04) | ((y % 2.0) < 0.04)
-    colour[seam] *= 0.7
+    seam = _either(_lines(x, 2.0, 0.04, footprint), _lines(y, 2.0, 0.04, footprint))
+    colour = colour * _dim(seam, 0.7)[:, None]
     cx, cy = np.floor(x / 5.0), np.floor(y / 5.0)
     ox, oy = x - cx * 5.0, y - cy * 5.0
     vent = (_hash(salt + 22, cx, cy) > 0.6) & (ox > 1.9) & (ox < 3.1) & (oy > 1.9) & (oy < 3.1)
-    colour[vent] = np.array([0.62, 0.63, 0.65]) * np.where(((ox[vent] - 1.9) % 0.15) < 0.05, 0.7, 1.0)[:, None]
+    slats = _lines(ox[vent] - 1.9, 0.15, 0.05, footprint[vent])
+    colour[vent] = np.array([0.62, 0.63, 0.65]) * _dim(slats, 0.7)[:, None]
     edge = np.minimum.reduce([x - town.lo[building, 0], town.hi[building, 0] - x, y - town.lo[building, 1], town.hi[building, 1] - y])
     colour[edge < 0.3] = town.trim[building[edge < 0.3]]
     return colour
 
 
-def ground_colour(town: Town, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """[P] ground points (x, y) -> [P, 3] albedo: asphalt with lane markings and crossings,
-    kerbs, tiled pavements, and grass in the empty lots."""
+def ground_colour(town: Town, x: np.ndarray, y: np.ndarray, *, footprint: np.ndarray) -> np.ndarray:
+    """[P] ground points (x, y) and footprints (metres a sample covers, 0: the point) -> [P, 3] albedo:
+    asphalt with lane markings and crossings, kerbs, tiled pavements, and grass in the empty lots."""
     salt = town.texture_salt
     config = town.config
     half_road, half_street = config.road_width / 2.0, config.street_width / 2.0
@@ -195,8 +263,8 @@ def ground_colour(town: Town, x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
     colour = np.empty((len(x), 3))
     # Asphalt: speckle (4 cm), patches (~2 m), repairs (~8 m).
-    speckle = _hash(salt + 30, np.floor(x / 0.04), np.floor(y / 0.04))
-    tone = (0.84 + 0.22 * speckle) * (0.9 + 0.14 * _value_noise(salt + 31, x / 2.0, y / 2.0))
+    speckle = _faded(_hash(salt + 30, np.floor(x / 0.04), np.floor(y / 0.04)), 0.04, footprint)
+    tone = (0.84 + 0.22 * speckle) * (0.9 + 0.14 * _value_noise(salt + 31, x / 2.0, y / 2.0)) * _weathering(town, salt + 100, x, y, footprint)
     tone *= np.where(_value_noise(salt + 32, x / 8.0, y / 8.0) > 0.72, 0.85, 1.0)
     colour[:] = np.array([0.25, 0.25, 0.26]) * tone[:, None]
     paint = np.zeros(len(x), dtype=bool)
@@ -218,19 +286,20 @@ def ground_colour(town: Town, x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
     # Pavement: 45 cm tiles with grout, and kerb stones (1 m) along the road.
     tx, ty = np.floor(x / 0.45), np.floor(y / 0.45)
-    grout = ((x - tx * 0.45) < 0.015) | ((y - ty * 0.45) < 0.015)
-    tile = np.array([0.63, 0.61, 0.57]) * (0.84 + 0.22 * _hash(salt + 33, tx, ty))[:, None]
-    tile[grout] = np.array([0.42, 0.41, 0.39])
+    grout = _either(_lines(x, 0.45, 0.015, footprint, point=(x - tx * 0.45) < 0.015), _lines(y, 0.45, 0.015, footprint, point=(y - ty * 0.45) < 0.015))
+    tile = np.array([0.63, 0.61, 0.57]) * (0.84 + 0.22 * _faded(_hash(salt + 33, tx, ty), 0.45, footprint))[:, None]
+    tile = _mix(tile, np.array([0.42, 0.41, 0.39]), grout)
     kerb_v = street_v & ~road & (ax < half_road + 0.25) & ~road_h
     kerb_h = street_h & ~road & (ay < half_road + 0.25) & ~road_v
-    kerb_joint = np.where(kerb_v, (y % 1.0) < 0.02, (x % 1.0) < 0.02)
-    tile[kerb_v | kerb_h] = np.array([0.74, 0.74, 0.72])
-    tile[(kerb_v | kerb_h) & kerb_joint] = np.array([0.5, 0.5, 0.49])
+    kerb = kerb_v | kerb_h
+    kerb_joint = np.where(kerb_v, _lines(y, 1.0, 0.02, footprint), _lines(x, 1.0, 0.02, footprint))
+    tile[kerb] = _mix(np.broadcast_to(np.array([0.74, 0.74, 0.72]), (int(kerb.sum()), 3)), np.array([0.5, 0.5, 0.49]), kerb_joint[kerb])
     colour[pavement] = tile[pavement]
 
     # Empty lots and the rest: grass.
     lot = ~(road | pavement)
-    grass = np.array([0.28, 0.42, 0.18]) * ((0.7 + 0.45 * _hash(salt + 34, np.floor(x / 0.05), np.floor(y / 0.05))) * (0.85 + 0.2 * _value_noise(salt + 35, x, y)))[:, None]
+    blades = _faded(_hash(salt + 34, np.floor(x / 0.05), np.floor(y / 0.05)), 0.05, footprint)
+    grass = np.array([0.28, 0.42, 0.18]) * ((0.7 + 0.45 * blades) * (0.85 + 0.2 * _value_noise(salt + 35, x, y)))[:, None]
     colour[lot] = grass[lot]
     return colour
 

@@ -18,18 +18,26 @@ from scalar_nerfstudio.scenes.town.raycast import CHUNK_RAYS, GROUND, SKY, TownH
 __all__ = ["render_town_image", "render_town_rays"]
 
 
-def _shade(town: Town, origins: np.ndarray, directions: np.ndarray, hits: TownHits) -> np.ndarray:
-    """Colour of each ray's hit: albedo x (ambient + sun) for surfaces, the sky gradient otherwise ([P, 3])."""
+#: The smallest |cos| between a ray and the surface it hits that widens its footprint (grazing rays: 5x at most).
+GRAZING_COS = 0.2
+
+
+def _shade(town: Town, origins: np.ndarray, directions: np.ndarray, hits: TownHits, sample_angle: float) -> np.ndarray:
+    """Colour of each ray's hit: albedo x (ambient + sun) for surfaces, the sky gradient otherwise ([P, 3]).
+    ``sample_angle``: radians one colour sample spans (0: the point itself), for the textures' footprints."""
     rgb = sky_colour(directions)
     hit = hits.surface != SKY
-    points = origins + directions * np.where(hit, hits.depth, 0.0)[:, None]
+    depth = np.where(hit, hits.depth, 0.0)  # [P]
+    points = origins + directions * depth[:, None]
+    incidence = np.maximum(np.abs(np.sum(hits.normal * directions, axis=1)), GRAZING_COS)
+    footprint = depth * float(sample_angle) / incidence  # [P] metres of surface a sample covers
     ground = np.flatnonzero(hits.surface == GROUND)
     albedo = np.zeros_like(rgb)
     if len(ground):
-        albedo[ground] = ground_colour(town, points[ground, 0], points[ground, 1])
+        albedo[ground] = ground_colour(town, points[ground, 0], points[ground, 1], footprint=footprint[ground])
     roofs = np.flatnonzero((hits.surface >= 0) & (hits.axis == 2))
     if len(roofs):
-        albedo[roofs] = roof_colour(town, hits.surface[roofs], x=points[roofs, 0], y=points[roofs, 1])
+        albedo[roofs] = roof_colour(town, hits.surface[roofs], x=points[roofs, 0], y=points[roofs, 1], footprint=footprint[roofs])
     walls = np.flatnonzero((hits.surface >= 0) & (hits.axis != 2))
     if len(walls):
         b = hits.surface[walls]
@@ -40,20 +48,22 @@ def _shade(town: Town, origins: np.ndarray, directions: np.ndarray, hits: TownHi
         u = p[rows, along] - town.lo[b, along]
         width = town.hi[b, along] - town.lo[b, along]
         face = ax * 2 + (hits.normal[walls, ax] > 0)
-        albedo[walls] = facade_colour(town, b, face, u=u, v=p[:, 2], width=width)
+        albedo[walls] = facade_colour(town, b, face, u=u, v=p[:, 2], width=width, footprint=footprint[walls])
     light = 0.5 + 0.55 * np.clip(hits.normal @ SUN, 0.0, 1.0)
     surface_rgb = albedo * light[:, None]
     rgb[hit] = surface_rgb[hit]
     return np.clip(rgb, 0.0, 1.0)
 
 
-def render_town_rays(origins: np.ndarray, directions: np.ndarray, town: Town) -> Tuple[np.ndarray, np.ndarray]:
+def render_town_rays(origins: np.ndarray, directions: np.ndarray, town: Town, *, sample_angle: float = 0.0) -> Tuple[np.ndarray, np.ndarray]:
     """Ray-cast the town.
 
     Args:
         origins: [N, 3] ray origins (metres), outside the buildings.
         directions: [N, 3] ray directions (need not be normalised).
         town: from :func:`build_town` or :func:`load_town`.
+        sample_angle: radians each ray's colour sample spans: the textures average their detail over the
+            surface it covers (``"filtered"`` textures; materials.py). 0: the colour at the hit point.
 
     Returns:
         rgb: [N, 3] colour in [0, 1]; depth: [N] distance to the first hit along the normalised
@@ -71,7 +81,7 @@ def render_town_rays(origins: np.ndarray, directions: np.ndarray, town: Town) ->
         o, d = origins[start : start + chunk], directions[start : start + chunk]
         hits = intersect_town(o, d, town, chunk_rays=chunk)
         unit = d / np.linalg.norm(d, axis=1, keepdims=True)
-        rgb[start : start + chunk] = _shade(town, o, unit, hits)
+        rgb[start : start + chunk] = _shade(town, o, unit, hits, sample_angle)
         depth[start : start + chunk] = hits.depth
     return rgb, depth
 
@@ -108,14 +118,16 @@ def render_town_image(town: Town, camera_to_world: np.ndarray, supersample: Opti
     cos = 1.0 / np.linalg.norm(centre, axis=1)
     directions = centre @ c2w[:3, :3].T
     origins = np.broadcast_to(c2w[:3, 3], directions.shape)
+    # A sample spans 1 / (focal x ss) radians at the image centre (a little less towards the edges).
+    sample_angle = 1.0 / (config.focal_px * ss) if config.textures == "filtered" else 0.0
     if ss == 1:
-        rgb, depth = render_town_rays(origins, directions, town)
+        rgb, depth = render_town_rays(origins, directions, town, sample_angle=sample_angle)
     else:
         depth = intersect_town(origins, directions, town).depth
         offsets = [((a + 0.5) / ss, (b + 0.5) / ss) for b in range(ss) for a in range(ss)]
         rgb = np.zeros_like(directions)
         for sub in _pixel_directions(config, offsets):
-            rgb += render_town_rays(origins, sub @ c2w[:3, :3].T, town)[0]
+            rgb += render_town_rays(origins, sub @ c2w[:3, :3].T, town, sample_angle=sample_angle)[0]
         rgb /= len(offsets)
     shape = (config.height, config.width)
     return rgb.reshape(*shape, 3), depth.reshape(shape), (depth * cos).reshape(shape)
