@@ -56,6 +56,8 @@ def camera_errors(processed: Path, scene: Path) -> Dict[str, Any]:
     frames = json.loads((processed / "transforms.json").read_text())["frames"]
     recovered = {Path(f["file_path"]).stem: np.array(f["transform_matrix"], dtype=np.float64) for f in frames}
     names = sorted(set(recovered) & set(truth))
+    if len(names) < 3:  # a similarity needs three cameras
+        return {"photos": len(truth), "registered": len(names), "registered_share": round(len(names) / len(truth), 4)}
     rec = np.stack([recovered[n] for n in names])  # [N, 4, 4]
     true = np.stack([truth[n] for n in names])  # [N, 4, 4]
     similarity = geo.umeyama(rec[:, :3, 3], true[:, :3, 3])
@@ -96,7 +98,9 @@ def main() -> None:
     seconds = time.perf_counter() - start
     (work / "process-data.log").write_text(result.stdout + result.stderr)
     mapper = re.search(r"mapping \((\w+)", result.stdout + result.stderr)
-    figures = {"command": " ".join(command), **written, "process_data_s": round(seconds, 1), "mapper": mapper.group(1) if mapper else None}
+    figures = {"command": " ".join(command), **written, "process_data_s": round(seconds, 1), "mapper": mapper.group(1) if mapper else None,
+               # the command resumes the stages an earlier call finished: its time is then that of the rest only
+               "resumed_stages": "done earlier" in result.stdout + result.stderr}
     if result.returncode == 0:
         figures.update(camera_errors(work / "scene", work / "town"))
     else:  # a capture it cannot pose is a result too: its one-line error, nothing registered

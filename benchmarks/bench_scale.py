@@ -30,17 +30,19 @@ from pathlib import Path
 from typing import Any, Dict, List
 
 
-def _peak_rss_of(command: List[str]) -> Dict[str, Any]:
-    """Run ``command`` in a child; its own peak RSS (``wait4``: not the largest of every child so far) and seconds."""
+def run_measured(command: List[str]) -> Dict[str, Any]:
+    """Run ``command`` in a child: its output (stdout and stderr), its own peak RSS (``wait4``: not the largest of
+    every child so far) and seconds. A child that fails ends this script with its output's tail."""
     start = time.perf_counter()
     with tempfile.TemporaryFile("w+") as log:
         child = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, text=True)
         _, status, usage = os.wait4(child.pid, 0)
         child.returncode = os.waitstatus_to_exitcode(status)  # reaped here: Popen must not wait for it again
-        if child.returncode != 0:
-            log.seek(0)
-            raise SystemExit(f"{' '.join(command[:6])} ... failed:\n{log.read()[-6000:]}")
-    return {"peak_rss_mib": round(usage.ru_maxrss / 1024), "seconds": round(time.perf_counter() - start, 1)}
+        log.seek(0)
+        output = log.read()
+    if child.returncode != 0:
+        raise SystemExit(f"{' '.join(command[:6])} ... failed:\n{output[-6000:]}")
+    return {"output": output, "peak_rss_mib": round(usage.ru_maxrss / 1024), "seconds": round(time.perf_counter() - start, 1)}
 
 
 def train_command(scene: Path, output: Path, args: argparse.Namespace, num_blocks: int) -> List[str]:
@@ -96,7 +98,7 @@ def render_views(config: Path, num_views: int) -> Dict[str, Any]:
 
 def measure(scene: Path, work: Path, args: argparse.Namespace, num_blocks: int) -> Dict[str, Any]:
     output = work / f"K{num_blocks}"
-    trained = _peak_rss_of(train_command(scene, output, args, num_blocks))
+    trained = run_measured(train_command(scene, output, args, num_blocks))
     (run,) = sorted(p.parent for p in output.glob("*/scalar-nerf/*/config.yml"))
     checkpoint = max((run / "nerfstudio_models").glob("step-*.ckpt"))
     block_files = sorted((run / "block_models").glob("block-*.ckpt"))

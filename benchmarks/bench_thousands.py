@@ -13,9 +13,10 @@ and tables, the bounded image cache, every 8th view held out) but few steps (``-
   K, the tables' rows, the steps the default length would train (from the capture, not the few trained here);
 * the median time of a global step and of a block step (a block's first steps and the first global ones are
   left out: they build caches), and the whole training time through every block's phase;
-* peak resident memory of the training process (``wait4`` of the child: it and anything it started).
+* peak resident memory of the training process (``wait4`` of the child).
 
-The last line gives the ratios of the last row to the first. ``--resume`` keeps the rows already in ``--out``.
+The last line gives the ratios of the most views' row to the fewest's. ``--resume`` keeps the rows already in
+``--out`` (for any number of views) when they were measured with the same other settings, and refuses otherwise.
 Run nothing else meanwhile: the times are wall-clock on shared cores; name the CPU with the figures.
 """
 
@@ -23,14 +24,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import resource
 import statistics
-import subprocess
 import sys
 import time
 from dataclasses import replace
 from pathlib import Path
 from typing import Any, Dict, List, Tuple
+
+from bench_scale import run_measured  # a child's own peak RSS (this folder's scripts import each other)
 
 WARMUP_GLOBAL_STEPS = 10
 """Global steps left out of the median (the first steps build caches and the occupancy grid)."""
@@ -90,7 +91,6 @@ def train_in_this_process(scene: Path, output: Path, global_steps: int, block_st
             global_ms.append(spent)
         elif phase.block is not None and step >= phase.start_step + WARMUP_BLOCK_STEPS:
             block_ms.append(spent)
-    peak_kib = max(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)
     return {
         "train_images": len(pixels), "train_pixels": sum(pixels), "setup_s": round(setup_s, 1),
         "blocks": plan.split.num_blocks, "auto_blocks": plan.auto_num_blocks,
@@ -99,20 +99,20 @@ def train_in_this_process(scene: Path, output: Path, global_steps: int, block_st
         "default_global_steps": default_length.global_steps, "default_block_steps": default_length.block_steps if held else None,
         "global_ms_per_step": round(statistics.median(global_ms), 1) if global_ms else None,
         "block_ms_per_step": round(statistics.median(block_ms), 1) if block_ms else None,
-        "steps": len(busy), "train_s": round(train_s, 1), "peak_rss_mib": round(peak_kib / 1024),
+        "steps": len(busy), "train_s": round(train_s, 1),
     }
 
 
 def measure(views: int, args: argparse.Namespace) -> Dict[str, Any]:
     """One row: the scene written (or reused), then a fresh process sets up and trains on it."""
-    scene = args.work / f"town-{views}"
+    name = f"{args.capture}-{views}-{args.size[0]}x{args.size[1]}-{args.town[0]}x{args.town[1]}"
+    scene = args.work / f"town-{name}"
     write_s = write_scene(scene, views, args)
-    command = [sys.executable, __file__, "--child", str(scene), "--child-output", str(args.work / f"runs-{views}"),
+    command = [sys.executable, __file__, "--child", str(scene), "--child-output", str(args.work / f"runs-{name}"),
                "--global-steps", str(args.global_steps), "--block-steps", str(args.block_steps)]
-    result = subprocess.run(command, capture_output=True, text=True, check=False)
-    if result.returncode != 0:
-        raise SystemExit(f"training on {scene} failed:\n{result.stdout[-3000:]}\n{result.stderr[-3000:]}")
-    return {"views": views, "write_s": round(write_s, 1), **json.loads(result.stdout.strip().splitlines()[-1])}
+    trained = run_measured(command)
+    row = json.loads(trained["output"].strip().splitlines()[-1])
+    return {"views": views, "write_s": round(write_s, 1), **row, "peak_rss_mib": trained["peak_rss_mib"]}
 
 
 COLUMNS = (("views", 6), ("write_s", 8), ("setup_s", 8), ("blocks", 6), ("global_log2_table", 6), ("block_log2_tables", 12), ("default_global_steps", 8),
@@ -139,9 +139,14 @@ def main() -> None:
         print(json.dumps(train_in_this_process(args.child, args.child_output, args.global_steps, args.block_steps)))
         return
 
+    settings = {k: v for k, v in vars(args).items() if k not in ("views", "work", "out", "resume", "child", "child_output")}
     rows: List[Dict[str, Any]] = []
     if args.resume and args.out is not None and args.out.is_file():
-        rows = [row for row in json.loads(args.out.read_text())["rows"] if row["views"] in args.views]
+        kept = json.loads(json.dumps(settings, default=str))
+        saved = json.loads(args.out.read_text())
+        if saved["settings"] != kept:
+            raise SystemExit(f"--resume: {args.out} was measured with other settings ({saved['settings']}); give those, or another --out")
+        rows = saved["rows"]
     args.work.mkdir(parents=True, exist_ok=True)
     print(f"towns of {args.town[0]} x {args.town[1]} city blocks, {args.capture}, {args.size[0]}x{args.size[1]}; "
           f"{args.global_steps} global + K x {args.block_steps} block steps; work folder {args.work}")
@@ -152,9 +157,10 @@ def main() -> None:
             row = measure(views, args)
             rows.append(row)
             if args.out is not None:
-                settings = {k: v for k, v in vars(args).items() if k not in ("out", "resume", "child", "child_output")}
-                args.out.write_text(json.dumps({"settings": settings, "rows": rows}, indent=2, default=str) + "\n")
+                args.out.write_text(json.dumps({"settings": settings, "rows": sorted(rows, key=lambda r: r["views"])},
+                                               indent=2, default=str) + "\n")
         print(" ".join(f"{str(row[key]):>{width}}" for key, width in COLUMNS), flush=True)
+    rows = sorted((r for r in rows if r["views"] in args.views), key=lambda r: r["views"])
     first, last = rows[0], rows[-1]
     if len(rows) > 1:
         ratios = {key: last[key] / first[key] for key in ("peak_rss_mib", "global_ms_per_step", "block_ms_per_step")

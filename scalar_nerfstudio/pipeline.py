@@ -24,7 +24,7 @@ from torch.cuda.amp.grad_scaler import GradScaler
 
 from scalar_nerfstudio.blocks.capacity import BlockCapacity, LayoutScale, auto_num_blocks
 from scalar_nerfstudio.blocks.length import LengthSettings, TrainingLength, parse_duration, plan_length
-from scalar_nerfstudio.blocks.observation import block_observation
+from scalar_nerfstudio.blocks.observation import split_observation
 from scalar_nerfstudio.blocks.plan import BlockPlan, PlanSettings, load_plan, plan_blocks, recorded_scene_bound
 from scalar_nerfstudio.blocks.split import BlockSplit, BlockSplitError, load_blocks_json
 from scalar_nerfstudio.data.datamanager import (
@@ -214,7 +214,7 @@ class ScalarPipeline(PipelineBase):
             block_capacities=self.plan.capacities,
             decoder_mode=config.decoder_mode,
             block_init=config.block_init,
-            block_observation=self._block_observation(parsed),
+            block_observation=split_observation(parsed.cameras, [block.image_indices for block in self.split.blocks]),
             scene_radius=self.scene_radius,
         )
         self.set_model(model)
@@ -305,17 +305,6 @@ class ScalarPipeline(PipelineBase):
         if self.config.only_block is not None:
             return 1
         return len(self.plan.held_blocks) if self._blocks_follow_global_model() else 0
-
-    def _block_observation(self, parsed) -> Optional[torch.Tensor]:
-        """[K, G^3] the cells of a coarse grid each block's training cameras observe (None for K = 1)."""
-        if self.split.num_blocks <= 1:
-            return None
-        cameras = parsed.cameras
-        return block_observation(
-            cameras.camera_to_worlds, fx=cameras.fx.reshape(-1), fy=cameras.fy.reshape(-1), cx=cameras.cx.reshape(-1),
-            cy=cameras.cy.reshape(-1), width=cameras.width.reshape(-1), height=cameras.height.reshape(-1),
-            block_images=[block.image_indices for block in self.split.blocks],
-        )
 
     @property
     def split(self) -> BlockSplit:

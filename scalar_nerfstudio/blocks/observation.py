@@ -12,7 +12,7 @@ Pure torch, CPU or GPU; cameras are nerfstudio's (OpenGL camera-to-world, lookin
 
 from __future__ import annotations
 
-from typing import Sequence
+from typing import Any, Optional, Sequence
 
 import torch
 from torch import Tensor
@@ -79,6 +79,15 @@ def block_observation(camera_to_worlds: Tensor, *, fx: Tensor, fy: Tensor, cx: T
         dilated = torch.nn.functional.max_pool3d(grid, kernel_size=3, stride=1, padding=1) > 0
         observed.append(dilated.reshape(-1))
     return torch.stack(observed) if observed else torch.zeros(0, resolution**3, dtype=torch.bool)
+
+
+def split_observation(cameras: Any, block_images: Sequence[Sequence[int]]) -> Optional[Tensor]:
+    """[K, G^3] bool (:func:`block_observation`) of the training ``cameras`` (nerfstudio's ``Cameras``: ``camera_to_worlds``
+    [N, 3, 4] and [N, 1] intrinsics) split into the blocks' ``block_images``; None for one block (nothing to choose)."""
+    if len(block_images) <= 1:
+        return None
+    flat = {name: getattr(cameras, name).reshape(-1) for name in ("fx", "fy", "cx", "cy", "width", "height")}
+    return block_observation(cameras.camera_to_worlds, **flat, block_images=block_images)
 
 
 def observed_at(observation: Tensor, points: Tensor) -> Tensor:

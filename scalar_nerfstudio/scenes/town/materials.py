@@ -66,13 +66,43 @@ def _faded(values: np.ndarray, cell: float, footprint: np.ndarray) -> np.ndarray
     return np.where(fade < 1.0, 0.5 + (values - 0.5) * fade, values)
 
 
+#: The deepest level of :func:`_speckle`'s mip chain (cells 2^40 times the finest: far beyond any scene).
+_MAX_LEVEL = 40
+
+
+def _speckle(salt: int, cell: float, u: np.ndarray, v: np.ndarray, footprint: np.ndarray, *ids: np.ndarray) -> np.ndarray:
+    """[P] noise uniform in [0, 1) on a lattice of ``cell``-metre cells over the surface coordinates ``u``, ``v``
+    ([P] metres; salted, and drawn apart for each of ``ids``, [P] integers), as a sample ``footprint`` ([P] metres)
+    wide sees it. A sample within a cell (or of footprint 0) gets its cell's value. A wider one gets a mip chain's:
+    at level k the cells are 2^k times wider and hold the mean of the 4^k fine cells they cover, a value drawn
+    about 0.5 with 2^-k of the fine spread, interpolated between the two levels about the footprint. So far
+    away the speckle is as faint as a camera records it and no longer changes with the exact point a pixel
+    falls on (which, with the cells' own values, made a random speckle differ from view to view)."""
+    fine = _hash(salt, np.floor(u / cell), np.floor(v / cell), *ids)
+    level = np.minimum(np.log2(np.maximum(footprint, 1e-300) / cell), _MAX_LEVEL)  # [P] <= 0: within a cell
+    wide = np.flatnonzero(level > 0.0)
+    if len(wide) == 0:
+        return fine
+    uw, vw, idw = u[wide], v[wide], [np.asarray(i)[wide] for i in ids]
+
+    def mip(k: np.ndarray) -> np.ndarray:  # [W] the level-k value (k >= 1) at the wide samples
+        size = cell * np.exp2(k)
+        return 0.5 + (_hash(salt + 7919, np.floor(uw / size), np.floor(vw / size), k, *idw) - 0.5) * np.exp2(-k)
+
+    below = np.floor(level[wide])
+    t = level[wide] - below
+    out = fine.copy()
+    out[wide] = np.where(below == 0, fine[wide], mip(np.maximum(below, 1.0))) * (1.0 - t) + mip(below + 1.0) * t
+    return out
+
+
 def _lines(x: np.ndarray, period, width, footprint: np.ndarray, point: Optional[np.ndarray] = None) -> np.ndarray:
     """Coverage in [0, 1] of lines ``width`` wide that start every ``period`` (where ``x mod period <
     width``), averaged over a box ``footprint`` wide about ``x`` ([P]; scalars or [P] period and width).
     A footprint of 0 gives the point test itself (0 or 1): ``point`` ([P] bool) where the caller has it
     computed its own way (the version-2 pixels), else ``x mod period < width``."""
     point = (np.mod(x, period) < width if point is None else point).astype(np.float64)
-    half = np.asarray(footprint) / 2.0
+    half = np.minimum(np.asarray(footprint) / 2.0, 1e6)  # [P] (wider than any town: its mean coverage)
 
     def covered(t: np.ndarray) -> np.ndarray:  # line length in [0, t]
         k = np.floor(t / period)
@@ -141,14 +171,15 @@ def facade_colour(town: Town, building: np.ndarray, face: np.ndarray, *, u: np.n
         col = np.floor(along)
         mortar = _either(_lines(shifted, 0.225, 0.012, fpb, point=(along - col) * 0.225 < 0.012),
                          _lines(vb, 0.075, 0.011, fpb, point=(vb - row * 0.075) < 0.011))
-        tone = 0.78 + 0.3 * _faded(_hash(salt + 1, col, row, fb), 0.075, fpb)
-        tint = 0.06 * (_faded(_hash(salt + 2, col, row, fb), 0.075, fpb) - 0.5)
+        brick_size = np.sqrt(0.225 * 0.075)  # a brick's side, on average (its hash is per brick, staggered)
+        tone = 0.78 + 0.3 * _faded(_hash(salt + 1, col, row, fb), brick_size, fpb)
+        tint = 0.06 * (_faded(_hash(salt + 2, col, row, fb), brick_size, fpb) - 0.5)
         bricks = wall[brick] * tone[:, None] + np.array([tint, 0.5 * tint, 0.0 * tint]).T
         colour[brick] = _mix(bricks, np.array([0.74, 0.71, 0.65]), mortar)
     plaster = style == 1
     if plaster.any():
         up, vp, fp, fpp = u[plaster], v[plaster], fid[plaster], footprint[plaster]
-        speckle = _faded(_hash(salt + 4, np.floor(up / 0.04), np.floor(vp / 0.04), fp), 0.04, fpp)
+        speckle = _speckle(salt + 4, 0.04, up, vp, fpp, fp)
         tone = 0.86 + 0.1 * _value_noise(salt + 3, up / 0.8 + 7.0 * fp, vp / 0.8) + 0.06 * speckle
         groove = (vp < floor_h[plaster]) * _lines(vp, 0.45, 0.025, fpp)  # rusticated ground floor
         colour[plaster] = wall[plaster] * (tone * _dim(groove, 0.75))[:, None]
@@ -160,7 +191,7 @@ def facade_colour(town: Town, building: np.ndarray, face: np.ndarray, *, u: np.n
         joint = _either(_lines(uc, 1.5, 0.02, fpc, point=(uc - pu * 1.5) < 0.02), _lines(vc, ph, 0.02, fpc, point=(vc - pv * ph) < 0.02))
         hole = (((uc % 0.6) - 0.3) ** 2 + ((vc % 0.6) - 0.3) ** 2 < 0.022**2).astype(np.float64)
         hole = np.where(fpc > 0.044, np.pi * 0.022**2 / 0.36, hole)  # tie holes: their share of the wall, once unresolved
-        tone = (0.84 + 0.16 * _hash(salt + 5, pu, pv, fc)) * (0.96 + 0.06 * _faded(_hash(salt + 6, np.floor(uc / 0.05), np.floor(vc / 0.05), fc), 0.05, fpc))
+        tone = (0.84 + 0.16 * _hash(salt + 5, pu, pv, fc)) * (0.96 + 0.06 * _speckle(salt + 6, 0.05, uc, vc, fpc, fc))
         colour[concrete] = wall[concrete] * (tone * _dim(_either(joint, hole), 0.6))[:, None]
 
     # Storeys: floor bands and the parapet.
@@ -232,7 +263,7 @@ def roof_colour(town: Town, building: np.ndarray, *, x: np.ndarray, y: np.ndarra
     """[P] building index, roof point (x, y) and footprint (metres a sample covers, 0: the point) -> [P, 3] roof
     albedo (gravel, seams, vents, coping)."""
     salt = town.texture_salt
-    gravel = _faded(_hash(salt + 20, np.floor(x / 0.05), np.floor(y / 0.05)), 0.05, footprint)
+    gravel = _speckle(salt + 20, 0.05, x, y, footprint)
     tone = (0.78 + 0.22 * gravel) * (0.9 + 0.12 * _value_noise(salt + 21, x / 2.5, y / 2.5)) * _weathering(town, salt + 200, x, y, footprint)
     colour = town.roof[building] * tone[:, None]
     seam = _either(_lines(x, 2.0, 0.04, footprint), _lines(y, 2.0, 0.04, footprint))
@@ -263,8 +294,8 @@ def ground_colour(town: Town, x: np.ndarray, y: np.ndarray, *, footprint: np.nda
 
     colour = np.empty((len(x), 3))
     # Asphalt: speckle (4 cm), patches (~2 m), repairs (~8 m).
-    speckle = _faded(_hash(salt + 30, np.floor(x / 0.04), np.floor(y / 0.04)), 0.04, footprint)
-    tone = (0.84 + 0.22 * speckle) * (0.9 + 0.14 * _value_noise(salt + 31, x / 2.0, y / 2.0)) * _weathering(town, salt + 100, x, y, footprint)
+    speckle = _speckle(salt + 30, 0.04, x, y, footprint)
+    tone = (0.84 + 0.22 * speckle) * (0.9 + 0.14 * _value_noise(salt + 31, x / 2.0, y / 2.0))
     tone *= np.where(_value_noise(salt + 32, x / 8.0, y / 8.0) > 0.72, 0.85, 1.0)
     colour[:] = np.array([0.25, 0.25, 0.26]) * tone[:, None]
     paint = np.zeros(len(x), dtype=bool)
@@ -298,10 +329,10 @@ def ground_colour(town: Town, x: np.ndarray, y: np.ndarray, *, footprint: np.nda
 
     # Empty lots and the rest: grass.
     lot = ~(road | pavement)
-    blades = _faded(_hash(salt + 34, np.floor(x / 0.05), np.floor(y / 0.05)), 0.05, footprint)
+    blades = _speckle(salt + 34, 0.05, x, y, footprint)
     grass = np.array([0.28, 0.42, 0.18]) * ((0.7 + 0.45 * blades) * (0.85 + 0.2 * _value_noise(salt + 35, x, y)))[:, None]
     colour[lot] = grass[lot]
-    return colour
+    return colour * _weathering(town, salt + 100, x, y, footprint)[:, None]  # on every ground surface
 
 
 def sky_colour(directions: np.ndarray) -> np.ndarray:
