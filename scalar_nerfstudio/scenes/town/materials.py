@@ -134,7 +134,9 @@ def _weathering(town: Town, salt: int, x: np.ndarray, y: np.ndarray, footprint: 
     if town.config.textures != "filtered":
         return np.ones(len(x))
     octaves = ((0.3, 0.25), (0.8, 0.4), (2.0, 0.35))
-    noise = sum(weight * _faded(_value_noise(salt + k, x / scale, y / scale), scale, footprint) for k, (scale, weight) in enumerate(octaves))
+    noise = np.zeros(len(x))  # [P]
+    for k, (scale, weight) in enumerate(octaves):
+        noise += weight * _faded(_value_noise(salt + k, x / scale, y / scale), scale, footprint)
     return 0.7 + 0.6 * noise
 
 
