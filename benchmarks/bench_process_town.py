@@ -25,20 +25,19 @@ from pathlib import Path
 from typing import Any, Dict
 
 import numpy as np
+from bench_thousands import town_config  # the town options both scripts take (same directory)
 
 
 def write_capture(work: Path, args: argparse.Namespace) -> Dict[str, float]:
     """The town and its photos in ``work`` (each only when not there yet); seconds spent on each."""
-    from scalar_nerfstudio.scenes.town import TownConfig, write_town
+    from scalar_nerfstudio.scenes.town import write_town
     from scalar_nerfstudio.scenes.town.photos import write_photos
 
     scene, photos = work / "town", work / "photos"
     spent = {"write_scene_s": 0.0, "write_photos_s": 0.0}
     if not (scene / "transforms.json").is_file():
         start = time.perf_counter()
-        config = TownConfig(num_images=args.views, width=args.size[0], height=args.size[1], blocks_x=args.town[0],
-                            blocks_y=args.town[1], capture=args.capture, textures=args.textures)
-        write_town(scene, config, progress=False, overwrite=True, workers=args.threads)
+        write_town(scene, town_config(args, args.views, textures=args.textures), progress=False, overwrite=True, workers=args.threads)
         spent["write_scene_s"] = round(time.perf_counter() - start, 1)
     if not photos.is_dir() or len(list(photos.glob("*.jpg"))) != args.views:
         start = time.perf_counter()

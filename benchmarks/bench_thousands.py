@@ -39,16 +39,23 @@ WARMUP_BLOCK_STEPS = 3
 """Steps of each block left out of the median (its decoder and table are copied on its first step)."""
 
 
+def town_config(args: argparse.Namespace, views: int, **options: Any):
+    """The ``TownConfig`` of ``views`` views from the options this script and bench_process_town.py share
+    (``--size``, ``--town``, ``--capture``), with ``options`` on top."""
+    from scalar_nerfstudio.scenes.town import TownConfig
+
+    return TownConfig(num_images=views, width=args.size[0], height=args.size[1], blocks_x=args.town[0], blocks_y=args.town[1],
+                      capture=args.capture, **options)
+
+
 def write_scene(folder: Path, views: int, args: argparse.Namespace) -> float:
     """Write the town of ``views`` views into ``folder`` unless a finished one is there; seconds spent (0: reused)."""
     if (folder / "transforms.json").is_file():
         return 0.0
-    from scalar_nerfstudio.scenes.town import TownConfig, write_town
+    from scalar_nerfstudio.scenes.town import write_town
 
-    config = TownConfig(num_images=views, width=args.size[0], height=args.size[1], blocks_x=args.town[0], blocks_y=args.town[1],
-                        capture=args.capture)
     start = time.perf_counter()
-    write_town(folder, config, progress=False, overwrite=True, workers=args.workers)
+    write_town(folder, town_config(args, views), progress=False, overwrite=True, workers=args.workers)
     return time.perf_counter() - start
 
 

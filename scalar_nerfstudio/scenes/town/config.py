@@ -13,8 +13,8 @@ from typing import Any, Dict, Tuple
 import numpy as np
 
 __all__ = [
-    "CAPTURES", "DEPTH_PNG_MAX_M", "TEXTURES", "DEPTH_PNG_UNIT_M", "GENERATOR_ID", "GENERATOR_VERSION", "READABLE_VERSIONS", "TownConfig",
-    "blocks_for_extent",
+    "CAPTURES", "DEPTH_PNG_MAX_M", "DEPTH_PNG_UNIT_M", "GENERATOR_ID", "GENERATOR_VERSION", "READABLE_VERSIONS", "TEXTURES",
+    "TownConfig", "blocks_for_extent",
 ]
 
 #: The generator's name in scene.json: the module that first wrote town scenes. It names the file

@@ -7,7 +7,8 @@ whole buildings (10-40 m). The noise is an integer hash of lattice coordinates, 
 
 A camera's pixel averages the surface over its footprint. With ``TownConfig.textures == "filtered"`` each
 point carries the width of the surface its sample covers (``footprint``, metres) and detail finer than that
-is averaged (:func:`_faded`, :func:`_lines`): a surface far away looks the same from every view instead of
+is averaged (:func:`_speckle` for lattice noise, :func:`_faded` for per-brick, per-tile and smooth noise,
+:func:`_lines` for thin lines): a surface far away looks the same from every view instead of
 a speckle that changes with the view (aliasing, which structure-from-motion cannot match), and the ground
 and roofs carry weathering at 0.3-2 m. A footprint of 0 samples the point itself: the version-2 pixels
 (``"point-sampled"``).
