@@ -24,6 +24,7 @@ from scalar_nerfstudio.fields.decoder_kernels import kernel_conflict
 
 if TYPE_CHECKING:  # the configs checked here (they import this module's callers, not this module)
     from scalar_nerfstudio.data.datamanager import ScalarDataManagerConfig
+    from scalar_nerfstudio.data.ray_choice import ScalarPixelSamplerConfig
     from scalar_nerfstudio.engine.trainer import ScalarTrainerConfig
     from scalar_nerfstudio.models.scene_model import ScalarSceneModelConfig
     from scalar_nerfstudio.pipeline import ScalarPipelineConfig
@@ -225,6 +226,7 @@ def _check_data(datamanager: ScalarDataManagerConfig) -> None:
     scale = datamanager.camera_res_scale_factor
     if not (isinstance(scale, (int, float)) and math.isfinite(scale) and scale > 0):
         raise OptionError(f"{prefix}camera-res-scale-factor {_show(scale)}: must be a number > 0.")
+    _check_ray_choice(datamanager.pixel_sampler, f"{prefix}pixel-sampler.")
     parser = datamanager.dataparser
     if parser is None:
         return
@@ -245,6 +247,17 @@ def _check_data(datamanager: ScalarDataManagerConfig) -> None:
         value = getattr(parser, name, 1.0)
         if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
             raise OptionError(f"--{name.replace('_', '-')} {_show(value)} (nerfstudio-data): must be a number > 0.")
+
+
+def _check_ray_choice(sampler: ScalarPixelSamplerConfig, prefix: str) -> None:
+    if sampler.ray_choice not in ("uniform", "error"):
+        raise OptionError(f"{prefix}ray-choice {_show(sampler.ray_choice)}: must be uniform or error.")
+    _at_least(sampler, "tile_px", 1, prefix=prefix)
+    for name, low_open in (("uniform_share", False), ("error_decay", True)):
+        value = getattr(sampler, name)
+        inside = isinstance(value, (int, float)) and not isinstance(value, bool) and (0 < value < 1 if low_open else 0 <= value <= 1)
+        if not inside:
+            raise OptionError(f"{_flag(name, prefix)} {_show(value)}: must be a number in {'(0, 1)' if low_open else '[0, 1]'}.")
 
 
 def check_trainer_options(config: ScalarTrainerConfig) -> None:

@@ -16,7 +16,6 @@ from typing import Any, Dict, List, Literal, Optional, Tuple, Type
 import torch
 import tyro
 from nerfstudio.cameras.rays import RayBundle
-from nerfstudio.data.datamanagers.base_datamanager import DataManager
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 from nerfstudio.utils.rich_utils import CONSOLE
@@ -229,7 +228,7 @@ class ScalarPipeline(PipelineBase):
         self.block_overlay = BlockOverlay(self.split, camera_centres(parsed).numpy())
         self.coarse_first_render = CoarseFirstRender()
         self.finished_run_panel = FinishedRunPanel()
-        self._block_datamanager: Optional[DataManager] = None
+        self._block_datamanager: Optional[ScalarDataManager] = None
         self._block_datamanager_index: Optional[int] = None
         self._device = device
 
@@ -369,7 +368,7 @@ class ScalarPipeline(PipelineBase):
                             f"(mean squared error {fit.initial_error:.3g} -> {fit.final_error:.3g})")
         return phase
 
-    def _train_datamanager(self, phase: Phase) -> DataManager:
+    def _train_datamanager(self, phase: Phase) -> ScalarDataManager:
         """The global datamanager, or (built once per phase) one over the block's images only."""
         if phase.block is None:
             return self.datamanager
@@ -417,11 +416,13 @@ class ScalarPipeline(PipelineBase):
         """One training batch of the phase at ``step`` (its rays moved by the pose corrections), through that
         phase's model."""
         phase = self._enter_phase(step)
-        ray_bundle, batch = self._train_datamanager(phase).next_train(step)
+        datamanager = self._train_datamanager(phase)
+        ray_bundle, batch = datamanager.next_train(step)
         assert isinstance(ray_bundle, RayBundle), "scalar-nerf trains on ray batches (a pixel-sampling datamanager)"
         self.model.refine_training_rays(ray_bundle, phase.block)
         model = self.model.phase_model(phase.block)
         outputs = model(ray_bundle)
+        datamanager.record_train_errors(batch, outputs["rgb"])
         metrics_dict = model.get_metrics_dict(outputs, batch)
         loss_dict = model.get_loss_dict(outputs, batch, metrics_dict)
         if phase.block is None:

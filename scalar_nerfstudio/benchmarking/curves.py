@@ -36,6 +36,7 @@ from scalar_nerfstudio.benchmarking.variants import (
     auto_k,
     curve_variants,
     one_model_schedule,
+    ray_choice_overrides,
 )
 from scalar_nerfstudio.blocks.length import format_duration, parse_duration
 
@@ -63,6 +64,7 @@ def budget_specs(config: BenchmarkConfig, runs: Path) -> List[Dict[str, Any]]:
     }
     if config.decoder_width is not None:
         common["pipeline.model.field.hidden_dim"] = config.decoder_width
+    common.update(ray_choice_overrides(config))
     from scalar_nerfstudio.models.scene_model import ScalarSceneModelConfig
 
     k = auto_k(config, log2_t) if any(v.startswith("auto") for v in wanted) else 1
@@ -236,7 +238,7 @@ def setting_line(config: BenchmarkConfig, machine: str, automatic_k: Optional[in
     (the automatic K was not asked for, and is not stated)."""
     k = f"automatic K = {automatic_k}" if automatic_k is not None else "no block variant"
     return (f"Machine: {machine}. Tables 2^{config.log2_table} (ngp-t2: 2^{config.log2_table + 2}), {k}, seed {config.seed}, "
-            f"{config.rays_per_batch} rays per step.")
+            f"{config.rays_per_batch} rays per step{', drawn by error' if config.ray_choice == 'error' else ''}.")
 
 
 def run_curves(config: BenchmarkConfig, command: str, machine: str) -> Dict[str, Any]:

@@ -62,7 +62,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Dict, List, Optional, Tuple
+from typing import Any, Dict, List, Literal, Optional, Tuple
 
 __all__ = [
     "DECAY_SUFFIX", "ONE_MODEL_SCHEDULES", "ONE_MODEL_VARIANTS", "VARIANTS", "VARIANT_ALIASES", "WALL_CLOCK_SUFFIX", "canonical_variant", "former_variant_name", "WALL_CLOCK_TOLERANCE", "BenchmarkConfig", "Variant", "auto_k", "blocks_wall_clock_s", "check_options",
@@ -146,6 +146,8 @@ class BenchmarkConfig:
     """T: log2 table size of NGP_T, of the global model and of every fixed-table block; NGP_{T+2} has 4x."""
     rays_per_batch: int = 2048
     """Training rays per step (every variant)."""
+    ray_choice: Literal["uniform", "error"] = "uniform"
+    """How every variant draws its training pixels (``pipeline.datamanager.pixel-sampler.ray-choice``)."""
     decoder_width: Optional[int] = None
     """Units of each hidden decoder layer in every SCALAR/NGP variant (``pipeline.model.field.hidden_dim``).
     None: the field's default. 128 is the paper's decoder."""
@@ -285,7 +287,16 @@ def _tables(config: BenchmarkConfig) -> Tuple[int, int, Dict[str, Any]]:
         shared["pipeline.model.field.hidden_dim"] = config.decoder_width
     if config.max_auto_blocks is not None:
         shared["pipeline.max_auto_blocks"] = config.max_auto_blocks
+    shared.update(ray_choice_overrides(config))
     return config.log2_table, config.log2_table + 2, shared
+
+
+def ray_choice_overrides(config: BenchmarkConfig) -> Dict[str, Any]:
+    """The pixel sampler's override for ``--ray-choice`` (none for nerfstudio's uniform draw, so the specs of
+    runs measured before the option existed still match under ``--resume``)."""
+    if config.ray_choice == "uniform":
+        return {}
+    return {"pipeline.datamanager.pixel_sampler.ray_choice": config.ray_choice}
 
 
 def auto_k(config: BenchmarkConfig, log2_t: int) -> int:

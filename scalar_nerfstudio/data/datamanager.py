@@ -35,6 +35,7 @@ from torch import Tensor
 
 from scalar_nerfstudio.blocks.capacity import LayoutScale, layout_scale
 from scalar_nerfstudio.data.depth import depth_scale, missing_depth_files, ray_depth_image
+from scalar_nerfstudio.data.ray_choice import ScalarPixelSampler, ScalarPixelSamplerConfig
 from scalar_nerfstudio.data.validation import to_rgb_array
 from scalar_nerfstudio.seam.data import dataparser_outputs, loader_options
 
@@ -172,6 +173,8 @@ class ScalarDataManagerConfig(VanillaDataManagerConfig):
     start. Images that do not fit are cached as a random subset, replaced every image-resample-every steps."""
     image_resample_every: int = 250
     """Steps between fresh random image subsets, when not every image fits ``image_cache_mib``."""
+    pixel_sampler: ScalarPixelSamplerConfig = field(default_factory=ScalarPixelSamplerConfig)
+    """How training pixels are drawn (``ray-choice``: uniformly, or more where the model's error is high)."""
 
 
 def images_that_fit(num_images: int, bytes_per_image: int, budget_bytes: float) -> int:
@@ -268,6 +271,12 @@ class ScalarDataManager(VanillaDataManager[ScalarInputDataset]):
             f"{split}_num_images_to_sample_from": fit, f"{split}_num_times_to_repeat_images": config.image_resample_every,
         }):
             yield
+
+    def record_train_errors(self, batch: Dict[str, Tensor], rgb: Tensor) -> None:
+        """Give one training step's rendered colours ``rgb`` ``[N, 3]`` of ``batch``'s rays back to the pixel
+        sampler (which draws by them with ``pixel-sampler.ray-choice error``)."""
+        if isinstance(self.train_pixel_sampler, ScalarPixelSampler):
+            self.train_pixel_sampler.record_errors(batch["indices"], rgb, batch["image"])
 
     def _with_background(self, dataset: ScalarInputDataset) -> ScalarInputDataset:
         dataset.alpha_background = tuple(float(c) for c in self.config.alpha_background)  # type: ignore[assignment]
