@@ -5,6 +5,7 @@ number of seconds on the trainer's clock), so nothing here depends on the machin
 from __future__ import annotations
 
 import copy
+import re
 from pathlib import Path
 from typing import Dict, List
 
@@ -31,8 +32,12 @@ def test_a_time_budget_plans_the_steps_to_fit_it_and_records_them(scene: Path, t
     per_phase: Dict[str, int] = {}
     train_loss = pipeline.get_train_loss_dict
 
+    block_1_began = {}
+
     def costed(step: int):
         phase = pipeline.phase_at(step)
+        if phase.block == 1:
+            block_1_began.setdefault("t", simulated["t"])
         simulated["t"] += GLOBAL_STEP_S if phase.block is None else BLOCK_STEP_S[phase.block]
         per_phase[phase.name] = per_phase.get(phase.name, 0) + 1
         return train_loss(step)
@@ -55,6 +60,11 @@ def test_a_time_budget_plans_the_steps_to_fit_it_and_records_them(scene: Path, t
     assert "training length: global 2000 steps + 2 blocks x 1000 steps = 4000 steps for now" in log
     assert "planned for a budget of 40 s at" in log and "left (ends about" in log
     assert "phase block 1 starts (" in log and "steps/s in block 1" in log
+    # At a block's start the time left is the budget's (its steps are planned again at its own pace), not the
+    # steps left at the pace of the cheaper block before it.
+    left = re.search(r"phase block 1 starts \(\d+ steps\); the run has about (\d+) s left \(ends about \d\d:\d\d\), the budget's end", log)
+    assert left is not None, log[-2000:]
+    assert abs(int(left.group(1)) - (40.0 - block_1_began["t"])) <= 1.0
 
     run = trainer.base_dir
     assert load_plan(run / "blocks.json").length == length  # a resumed run, ns-eval, the viewer read it back

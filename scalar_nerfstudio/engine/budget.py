@@ -29,6 +29,7 @@ from scalar_nerfstudio.engine.pace import (
     calibration_start,
     eta_line,
     pace_is_due,
+    time_left_line,
 )
 from scalar_nerfstudio.pipeline_text import format_length
 
@@ -99,8 +100,12 @@ class ClockFollower:
                           f"of the budget left: {format_length(pipeline.length, pipeline.phases)}")
         upcoming = pipeline.phase_at(step + 1)
         if self._pace_reported and step + 1 == upcoming.start_step and step + 1 < self._total_steps():
-            CONSOLE.print(f"step {step + 1}: phase {upcoming.name} starts ({upcoming.num_steps} steps); the run has "
-                          f"{eta_line(self._steps_left(step), clock.pace(last_steps=200))}")
+            pace = clock.pace(last_steps=200)
+            left = eta_line(self._steps_left(step), pace)
+            if budget is not None and upcoming.block is not None and pipeline.length_settings().block_workers <= 1:
+                # the blocks are planned again at their own pace to end on the budget: the last block's pace misleads
+                left = time_left_line(max(budget - self.budget_spent_s(step + 1, pace or 0.0), 0.0)) + ", the budget's end"
+            CONSOLE.print(f"step {step + 1}: phase {upcoming.name} starts ({upcoming.num_steps} steps); the run has {left}")
 
     def _eta_in_global_phase(self, phase: Phase, step: int) -> None:
         """Without a budget: the ETA again at :data:`.pace.REPLAN_AT` of the global phase's steps, from the pace

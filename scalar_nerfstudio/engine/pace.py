@@ -133,6 +133,10 @@ def eta_line(steps_left: int, pace_steps_per_s: Optional[float], *, now: Callabl
     """``about 12 min 05 s left (ends about 22:41)`` for ``steps_left`` steps at ``pace_steps_per_s``."""
     if pace_steps_per_s is None or pace_steps_per_s <= 0:
         return f"{steps_left} steps left"
-    seconds = steps_left / pace_steps_per_s
+    return time_left_line(steps_left / pace_steps_per_s, now=now)
+
+
+def time_left_line(seconds: float, *, now: Callable[[], float] = time.time) -> str:
+    """``about 12 min 05 s left (ends about 22:41)`` for ``seconds`` left."""
     end = time.strftime("%H:%M", time.localtime(now() + seconds))
     return f"about {format_duration(seconds)} left (ends about {end})"
