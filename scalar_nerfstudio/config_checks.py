@@ -253,11 +253,11 @@ def _check_ray_choice(sampler: ScalarPixelSamplerConfig, prefix: str) -> None:
     if sampler.ray_choice not in ("uniform", "error"):
         raise OptionError(f"{prefix}ray-choice {_show(sampler.ray_choice)}: must be uniform or error.")
     _at_least(sampler, "tile_px", 1, prefix=prefix)
-    for name, low_open in (("uniform_share", False), ("error_decay", True)):
+    for name, open_interval in (("uniform_share", False), ("error_decay", True)):
         value = getattr(sampler, name)
-        inside = isinstance(value, (int, float)) and not isinstance(value, bool) and (0 < value < 1 if low_open else 0 <= value <= 1)
+        inside = isinstance(value, (int, float)) and not isinstance(value, bool) and (0 < value < 1 if open_interval else 0 <= value <= 1)
         if not inside:
-            raise OptionError(f"{_flag(name, prefix)} {_show(value)}: must be a number in {'(0, 1)' if low_open else '[0, 1]'}.")
+            raise OptionError(f"{_flag(name, prefix)} {_show(value)}: must be a number in {'(0, 1)' if open_interval else '[0, 1]'}.")
 
 
 def check_trainer_options(config: ScalarTrainerConfig) -> None:

@@ -64,11 +64,11 @@ class ErrorMap:
             return
         self.ensure(int(image.max()) + 1)
         flat = image * (self.tiles_y * self.tiles_x) + self.tile_of(y, x)
-        sums = torch.zeros(self.values.numel()).index_add_(0, flat, error)
-        counts = torch.zeros(self.values.numel()).index_add_(0, flat, torch.ones_like(error))
-        touched = counts > 0
+        touched, slot = torch.unique(flat, return_inverse=True)  # sums over the batch's tiles, not the whole map
+        sums = torch.zeros(len(touched)).index_add_(0, slot, error)
+        counts = torch.zeros(len(touched)).index_add_(0, slot, torch.ones_like(error))
         values = self.values.view(-1)
-        values[touched] = self.decay * values[touched] + (1.0 - self.decay) * sums[touched] / counts[touched]
+        values[touched] = self.decay * values[touched] + (1.0 - self.decay) * sums / counts
 
     def draw(self, image_idx: Tensor, num: int, *, generator: Optional[torch.Generator] = None) -> Tensor:
         """``num`` pixels ``[num, 3]`` (position in ``image_idx``, y, x) drawn in proportion to tile area x error."""
