@@ -37,7 +37,7 @@ def write_capture(work: Path, args: argparse.Namespace) -> Dict[str, float]:
     spent = {"write_scene_s": 0.0, "write_photos_s": 0.0}
     if not (scene / "transforms.json").is_file():
         start = time.perf_counter()
-        write_town(scene, town_config(args, args.views, textures=args.textures), progress=False, overwrite=True, workers=args.threads)
+        write_town(scene, town_config(args, args.views, textures=args.textures, aerial_altitude=args.altitude), progress=False, overwrite=True, workers=args.threads)
         spent["write_scene_s"] = round(time.perf_counter() - start, 1)
     if not photos.is_dir() or len(list(photos.glob("*.jpg"))) != args.views:
         start = time.perf_counter()
@@ -82,12 +82,15 @@ def main() -> None:
     parser.add_argument("--town", type=int, nargs=2, default=[8, 8], metavar=("X", "Y"), help="city blocks of the town")
     parser.add_argument("--capture", default="aerial", help="the town's capture (scalar-nerf-make-scene --capture)")
     parser.add_argument("--textures", default="filtered", help="the town's textures (scalar-nerf-make-scene --textures)")
+    parser.add_argument("--altitude", type=float, default=90.0,
+                        help="flight altitude in metres (scalar-nerf-make-scene --aerial-altitude); the town's roofs reach about 50 m, "
+                             "and a drone just above them sees a few roofs fill each frame, a poor geometry for structure-from-motion")
     parser.add_argument("--threads", type=int, default=2, help="process-data's --threads (and the scene writer's processes)")
     parser.add_argument("--work", type=Path, default=Path("outputs/bench-process-town"), help="town, photos and scene (kept)")
     parser.add_argument("--out", type=Path, default=None, help="write the figures as JSON here")
     args = parser.parse_args()
 
-    work = args.work / f"{args.capture}-{args.textures}-{args.views}-{args.size[0]}x{args.size[1]}-{args.town[0]}x{args.town[1]}"
+    work = args.work / f"{args.capture}-{args.textures}-{args.views}-{args.size[0]}x{args.size[1]}-{args.town[0]}x{args.town[1]}-{args.altitude:g}m"
     work.mkdir(parents=True, exist_ok=True)
     written = write_capture(work, args)
     command = ["scalar-nerf-process-data", "--images", str(work / "photos"), "--output", str(work / "scene"),

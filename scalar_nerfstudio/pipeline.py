@@ -395,8 +395,10 @@ class ScalarPipeline(PipelineBase):
         self.model.phase_model(phase.block).finish_training()
 
     def finish_phase(self, phase: Phase) -> None:
-        """A phase has ended: a block's weights go to their file and leave memory, with its images."""
+        """A phase has ended: a block's weights go to their file and leave memory, with its images; the global
+        model's training images leave memory when its phase ends (the blocks load their own)."""
         if phase.block is None:
+            self.datamanager.release_train_images()
             return
         path = self.model.store_block(phase.block)
         CONSOLE.log(f"phase {phase.name} done: its model saved to {path} and released from memory")

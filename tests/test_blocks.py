@@ -149,6 +149,7 @@ def test_run_stopped_in_a_block_phase_resumes_there(scene: Path, tmp_path: Path)
     first = _trainer(scene, tmp_path)
     first.config.max_num_iterations = stop_at
     first.train()
+    assert first.pipeline.datamanager.train_image_dataloader is None, "the global model's images leave memory with its phase"
     run = first.base_dir
     assert latest_checkpoint_step(run / "nerfstudio_models") == stop_at - 1
     saved = torch.load(run / "nerfstudio_models" / f"step-{stop_at - 1:09d}.ckpt", map_location="cpu", weights_only=True)

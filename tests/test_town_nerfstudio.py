@@ -19,7 +19,7 @@ from scalar_nerfstudio.scenes.town import (
     load_town,
     points_inside_buildings,
     points_on_streets,
-    read_depth_png,
+    read_depth,
     render_town_rays,
     town_camera_poses,
 )
@@ -79,7 +79,7 @@ def test_nerfstudio_parses_the_scene_and_cameras_walk_the_streets(tiny_scene: Pa
     origins, directions = _rays_in_town_frame(val.cameras.generate_rays(camera_indices=1), train)
     _, depth = render_town_rays(origins, directions, town)
     cos = -(directions / np.linalg.norm(directions, axis=1, keepdims=True)) @ np.array(frames[8]["transform_matrix"])[:3, 2]
-    png = read_depth_png(tiny_scene / frames[8]["depth_file_path"]).reshape(-1)
+    png = read_depth(tiny_scene / frames[8]["depth_file_path"]).reshape(-1)
     known = png > 0
     assert known.mean() > 0.3
     assert np.median(np.abs(depth[known] * cos[known] - png[known])) < 2e-3

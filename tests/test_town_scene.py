@@ -21,11 +21,12 @@ from scalar_nerfstudio.scenes.town import (
     GROUND,
     TownConfig,
     build_town,
+    depth_suffix,
     intersect_town,
     load_town,
     points_inside_buildings,
     points_on_streets,
-    read_depth_png,
+    read_depth,
     render_town_image,
     render_town_rays,
     town_boxes,
@@ -99,7 +100,7 @@ def test_scene_json_records_options_and_geometry(tiny_scene: Path) -> None:
 def test_config_rejects_bad_options() -> None:
     for bad, field in (({"width": 0}, "width"), ({"num_images": -1}, "num_images"), ({"blocks_x": 0}, "blocks_x"),
                        ({"block_size": -5.0}, "block_size"), ({"road_width": 20.0}, "road_width"), ({"fov_x_deg": 180.0}, "fov_x_deg"),
-                       ({"capture": "drone"}, "capture"), ({"aerial_altitude": 0.0}, "aerial_altitude"), ({"aerial_altitude": 70.0}, "aerial_altitude"), ({"rig_headings": ()}, "rig_headings"), ({"rig_headings": (float("nan"),)}, "rig_headings")):
+                       ({"capture": "drone"}, "capture"), ({"aerial_altitude": 0.0}, "aerial_altitude"), ({"aerial_altitude": float("inf")}, "aerial_altitude"), ({"rig_headings": ()}, "rig_headings"), ({"rig_headings": (float("nan"),)}, "rig_headings")):
         with pytest.raises(ValueError, match=field):
             TownConfig(**bad)
 
@@ -190,13 +191,35 @@ def test_aerial_frames_see_ground_and_roofs_only_within_the_depth_range(tmp_path
     write_town(tmp_path / "scene", config, progress=False)
     town = build_town(config)
     for index, pose in enumerate(town_camera_poses(town)):
-        depth = read_depth_png(tmp_path / "scene" / "depths" / f"frame_{index:05d}.png")
+        depth = read_depth(tmp_path / "scene" / "depths" / f"frame_{index:05d}.png")
         assert (depth > 0).all() and depth.max() <= DEPTH_PNG_MAX_M
         half_height = np.tan(np.radians(config.fov_x_deg) / 2.0) * config.height / config.width
         deepest = pose[2, 3] / (np.cos(np.radians(14.0)) - half_height * np.sin(np.radians(14.0)))  # the ground at a far corner
         assert depth.max() <= deepest + 0.01
         # The tallest roof at the nearest; a ray's z-depth is its drop over at most sqrt(1 + half_height^2).
         assert depth.min() >= (pose[2, 3] - town.hi[:, 2].max()) / np.sqrt(1.0 + half_height**2) - 0.01
+
+
+def test_a_flight_beyond_the_pngs_range_writes_its_depth_as_npy(tmp_path: Path) -> None:
+    """At 90 m the ground lies beyond a 16-bit PNG's 65.535 m: the scene writes float32 ``.npy`` depth in the
+    same millimetres, every ground pixel known (none written as 0), and nerfstudio's loader reads the same
+    values. A flight at the default 55 m keeps its PNGs."""
+    from nerfstudio.data.utils.data_utils import get_depth_image_from_path
+
+    config = TownConfig(num_images=3, width=24, height=18, blocks_x=1, blocks_y=1, capture="aerial", aerial_altitude=90.0, seed=6)
+    assert depth_suffix(config) == ".npy" and depth_suffix(dataclasses.replace(config, aerial_altitude=55.0)) == ".png"
+    write_town(tmp_path / "scene", config, progress=False)
+    frames = json.loads((tmp_path / "scene" / "transforms.json").read_text())["frames"]
+    town = load_town(tmp_path / "scene")
+    for frame in frames:
+        assert frame["depth_file_path"].endswith(".npy")
+        _, _, z_depth = render_town_image(town, np.array(frame["transform_matrix"]))
+        depth = read_depth(tmp_path / "scene" / frame["depth_file_path"])
+        assert np.isfinite(z_depth).all() and (depth > 0).all() and depth.max() > DEPTH_PNG_MAX_M
+        np.testing.assert_allclose(depth, z_depth, rtol=1e-6)
+        loaded = get_depth_image_from_path(tmp_path / "scene" / frame["depth_file_path"], config.height, config.width, 1e-3)[..., 0].numpy()
+        np.testing.assert_allclose(loaded, depth, rtol=1e-6)
+    assert not list((tmp_path / "scene" / "depths").glob("*.png"))
 
 
 def test_nerfstudio_keeps_an_aerial_town_level(tmp_path: Path) -> None:
@@ -233,15 +256,15 @@ def test_aerial_and_rig_capture_is_the_drones_frames_then_the_rigs_and_stays_lev
     assert street.sum() > 40 and np.ptp(centres[street, 2]) < 0.01 * spread, (np.ptp(centres[street, 2]), spread)
 
 
-@pytest.mark.parametrize("altitude, message", [(20.0, "tallest roof"), (64.0, "beyond the depth PNGs")])
-def test_an_aerial_altitude_that_cannot_be_flown_is_refused_before_writing(tmp_path: Path, altitude: float, message: str) -> None:
-    config = TownConfig(num_images=4, width=16, height=12, blocks_x=2, blocks_y=2, capture="aerial", aerial_altitude=altitude, seed=5)
+@pytest.mark.parametrize("altitude, fov, message", [(20.0, 45.0, "tallest roof"), (90.0, 160.0, "horizon")])
+def test_an_aerial_altitude_that_cannot_be_flown_is_refused_before_writing(tmp_path: Path, altitude: float, fov: float, message: str) -> None:
+    config = TownConfig(num_images=4, width=16, height=12, blocks_x=2, blocks_y=2, capture="aerial", aerial_altitude=altitude, fov_x_deg=fov, seed=5)
     with pytest.raises(ValueError, match=message):
         write_town(tmp_path / "scene", config, progress=False)
     assert not (tmp_path / "scene").exists()
     result = _cli("--output", str(tmp_path / "cli"), "--num-images", "4", "--width", "16", "--height", "12", "--blocks-x", "2", "--blocks-y", "2",
-                  "--seed", "5", "--capture", "aerial", "--aerial-altitude", str(altitude))
-    assert result.returncode == 2 and "--aerial-altitude" in result.stderr and message in result.stderr, result.stderr
+                  "--seed", "5", "--capture", "aerial", "--aerial-altitude", str(altitude), "--fov", str(fov))
+    assert result.returncode == 2 and message in result.stderr, result.stderr
     assert len(result.stderr.strip().splitlines()) == 1 and not (tmp_path / "cli").exists()
 
 
@@ -379,7 +402,7 @@ def test_depth_png_round_trips(tiny_scene: Path) -> None:
     seen_sky = False
     for frame in frames[:6]:
         _, _, z_depth = render_town_image(town, np.array(frame["transform_matrix"]))
-        png = read_depth_png(tiny_scene / frame["depth_file_path"])
+        png = read_depth(tiny_scene / frame["depth_file_path"])
         known = np.isfinite(z_depth) & (z_depth <= DEPTH_PNG_MAX_M)
         assert known.mean() > 0.3
         assert np.abs(png[known] - z_depth[known]).max() <= 0.5e-3 + 1e-9

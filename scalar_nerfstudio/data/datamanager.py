@@ -7,7 +7,9 @@ loaded into memory, so memory stays bounded by the largest block, not by the num
 
 Images are read as 8-bit RGB whatever their kind (``ScalarInputDataset``): grayscale, palette,
 16-bit and CMYK images are converted, and transparent ones composited over ``alpha_background``, in
-memory (the scene check in ``data/validation.py`` accepts them and logs one line saying so).
+memory (the scene check in ``data/validation.py`` accepts them and logs one line saying so). The
+training loader caches them as 8-bit (:class:`Uint8Images`: a quarter of float32's memory); the pixel
+sampler turns the pixels a step draws into float32, the values nerfstudio's float32 images hold.
 
 Where the scene has depth images (``depth_file_path`` in transforms.json, as the generated town
 writes), the eval images carry them as ``ray_depth`` (distance along each pixel's ray, in the
@@ -17,6 +19,7 @@ Training batches never load them: no method here trains on depth.
 
 from __future__ import annotations
 
+import gc
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from functools import cached_property
@@ -26,9 +29,12 @@ from typing import Dict, Iterator, List, NamedTuple, Optional, Tuple, Type
 import numpy as np
 import numpy.typing as npt
 import torch
+from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManager, VanillaDataManagerConfig
 from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
 from nerfstudio.data.datasets.base_dataset import InputDataset
+from nerfstudio.data.utils.dataloaders import CacheDataloader
+from nerfstudio.model_components.ray_generators import RayGenerator
 from nerfstudio.utils.rich_utils import CONSOLE
 from PIL import Image
 from torch import Tensor
@@ -37,6 +43,7 @@ from scalar_nerfstudio.blocks.capacity import LayoutScale, layout_scale
 from scalar_nerfstudio.data.depth import depth_scale, missing_depth_files, ray_depth_image
 from scalar_nerfstudio.data.ray_choice import ScalarPixelSampler, ScalarPixelSamplerConfig
 from scalar_nerfstudio.data.validation import to_rgb_array
+from scalar_nerfstudio.engine.allocator import release_freed_memory
 from scalar_nerfstudio.seam.data import dataparser_outputs, loader_options
 
 
@@ -154,6 +161,21 @@ class ScalarInputDataset(InputDataset):
         return image
 
 
+class Uint8Images:
+    """A dataset's images as the training loader caches them: each item is its data with ``image``
+    ``[H, W, 3]`` uint8. Everything else (the viewer's thumbnails, evaluation) reads the dataset itself,
+    in float32. A dataset with a ``mask_color`` keeps float32 here too (nerfstudio paints it in floats)."""
+
+    def __init__(self, dataset: InputDataset) -> None:
+        self.dataset = dataset
+
+    def __len__(self) -> int:
+        return len(self.dataset)
+
+    def __getitem__(self, image_idx: int) -> Dict:
+        return self.dataset.get_data(image_idx, image_type="float32" if self.dataset.mask_color else "uint8")
+
+
 @dataclass
 class ScalarDataManagerConfig(VanillaDataManagerConfig):
     """nerfstudio's VanillaDataManager, optionally over a subset of the training images."""
@@ -169,8 +191,9 @@ class ScalarDataManagerConfig(VanillaDataManagerConfig):
     """RGB colour (each in [0, 1]) that transparent pixels are composited over, in memory (the scene
     folder is not changed)."""
     image_cache_mib: Optional[float] = None
-    """Memory for the decoded training and eval images (MiB); None: a quarter of the memory available at
-    start. Images that do not fit are cached as a random subset, replaced every image-resample-every steps."""
+    """Memory for the decoded training (8-bit) and eval (float32) images (MiB); None: a quarter of the memory
+    available at start. Images that do not fit are cached as a random subset, replaced every
+    image-resample-every steps."""
     image_resample_every: int = 250
     """Steps between fresh random image subsets, when not every image fits ``image_cache_mib``."""
     pixel_sampler: ScalarPixelSamplerConfig = field(default_factory=ScalarPixelSamplerConfig)
@@ -221,6 +244,12 @@ class ScalarDataManager(VanillaDataManager[ScalarInputDataset]):
             return float(self.config.image_cache_mib) * 2**20
         return available_memory_bytes() / 4.0
 
+    @property
+    def caches_uint8(self) -> bool:
+        """Whether the training loader caches 8-bit images: when the pixel sampler is scalar-nerf's, which turns
+        the pixels it draws into float32."""
+        return isinstance(self.config.pixel_sampler, ScalarPixelSamplerConfig)
+
     @cached_property
     def image_cache_plan(self) -> Tuple[float, int, int]:
         """(budget in bytes, training images cached at a time, eval images cached at a time); -1: all.
@@ -236,12 +265,14 @@ class ScalarDataManager(VanillaDataManager[ScalarInputDataset]):
                 fits.append(-1)
                 continue
             cameras = dataset.cameras
-            bytes_per_image = int((cameras.width * cameras.height).max().item()) * 3 * 4  # float32 RGB, as cached
+            bytes_per_value = 1 if dataset is self.train_dataset and self.caches_uint8 else 4  # uint8 / float32 RGB, as cached
+            bytes_per_image = int((cameras.width * cameras.height).max().item()) * 3 * bytes_per_value
             fits.append(images_that_fit(len(dataset), bytes_per_image, budget * len(dataset) / max(total, 1)))
         return budget, fits[0], fits[1]
 
     def setup_train(self) -> None:
-        """nerfstudio's set-up, with the training image cache bounded (:meth:`image_cache_plan`)."""
+        """nerfstudio's ``setup_train``, with the training images cached as 8-bit (:class:`Uint8Images`) and
+        the cache bounded (:meth:`image_cache_plan`); the loading's freed temporaries go back to the system."""
         budget, train_fit, eval_fit = self.image_cache_plan
         if train_fit != -1 or eval_fit != -1:
             num_train, num_eval = len(self.train_dataset), len(self.eval_dataset) if self.eval_dataset is not None else 0
@@ -251,8 +282,38 @@ class ScalarDataManager(VanillaDataManager[ScalarInputDataset]):
                 f"{num_eval if eval_fit == -1 else eval_fit} of {num_eval} eval images at a time, a new random subset "
                 f"every {self.config.image_resample_every} steps"
             )
-        with self._cache_bounded("train", train_fit):
-            super().setup_train()
+        config = self.config
+        bounded = train_fit != -1 and config.train_num_images_to_sample_from == -1
+        assert self.train_dataset is not None
+        CONSOLE.print("Setting up training dataset...")
+        self.train_pixel_sampler = self._get_pixel_sampler(self.train_dataset, config.train_num_rays_per_batch)
+        self.train_image_dataloader = CacheDataloader(
+            Uint8Images(self.train_dataset) if self.caches_uint8 else self.train_dataset,  # type: ignore[arg-type]
+            num_images_to_sample_from=train_fit if bounded else config.train_num_images_to_sample_from,
+            num_times_to_repeat_images=config.image_resample_every if bounded else config.train_num_times_to_repeat_images,
+            device=self.device,
+            num_workers=self.world_size * 4,
+            pin_memory=True,
+            collate_fn=config.collate_fn,
+            exclude_batch_keys_from_device=self.exclude_batch_keys_from_device,
+        )
+        self.iter_train_image_dataloader = iter(self.train_image_dataloader)
+        self.train_ray_generator = RayGenerator(self.train_dataset.cameras.to(self.device))
+        release_freed_memory()
+
+    def release_train_images(self) -> None:
+        """Drop the training loader and its cached images (and give their memory back to the system): the
+        global model's images once its phase has ended, while the blocks train from their own. A later
+        :meth:`next_train` loads them again."""
+        self.train_image_dataloader = self.iter_train_image_dataloader = None  # type: ignore[assignment]
+        gc.collect()
+        release_freed_memory()
+
+    def next_train(self, step: int) -> Tuple[RayBundle, Dict]:
+        """nerfstudio's next training batch, the training images loaded again first if they were released."""
+        if self.iter_train_image_dataloader is None:
+            self.setup_train()
+        return super().next_train(step)
 
     def setup_eval(self) -> None:
         """nerfstudio's set-up, with the eval image cache bounded (:meth:`image_cache_plan`)."""

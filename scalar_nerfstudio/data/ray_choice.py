@@ -10,6 +10,9 @@ uniform. The loss is not reweighted: hard pixels count more, as in instant-ngp's
 
 Batches with masks, and images of different sizes (nerfstudio collates those as lists), are drawn
 uniformly. The map lives in memory only: a resumed run starts it again from uniform.
+
+Either way, pixels drawn from 8-bit images (the training loader caches them so) come out as float32 in
+[0, 1], the values nerfstudio's float32 images hold (``uint8 / 255``).
 """
 
 from __future__ import annotations
@@ -116,6 +119,15 @@ class ScalarPixelSampler(PixelSampler):
         if not 0.0 <= config.uniform_share <= 1.0:
             raise ValueError(f"pixel-sampler.uniform-share must lie in [0, 1], got {config.uniform_share}")
         self.error_map: Optional[ErrorMap] = None
+
+    def sample(self, image_batch: Dict) -> Dict:
+        """nerfstudio's draw; 8-bit colours (``image``, ``full_image``) come back as float32 in [0, 1]."""
+        batch = super().sample(image_batch)
+        for key in ("image", "full_image"):
+            value = batch.get(key)
+            if isinstance(value, Tensor) and value.dtype == torch.uint8:
+                batch[key] = value.float() / 255.0
+        return batch
 
     @property
     def by_error(self) -> bool:

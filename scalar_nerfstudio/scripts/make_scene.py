@@ -1,10 +1,11 @@
 """``scalar-nerf-make-scene``: write one of the project's procedural scenes in nerfstudio format.
 
 Scenes:
-  town       a large town of streets and textured buildings (transforms.json, images/, 16-bit
-             depths/ in mm, scene.json), too large for one hash table: scalar-nerf splits it
-             into blocks (automatic K > 1). --capture: a rig of street-level cameras on a
-             vehicle (default), a walk, or a drone's aerial survey looking down.
+  town       a large town of streets and textured buildings (transforms.json, images/, depths/
+             in mm: 16-bit PNGs, or .npy where a flight's ground lies beyond 65.5 m, scene.json),
+             too large for one hash table: scalar-nerf splits it into blocks (automatic K > 1).
+             --capture: a rig of street-level cameras on a vehicle (default), a walk, or a
+             drone's aerial survey looking down.
   courtyard  the small courtyard of scalar-nerf-demo (transforms.json, images/)
 
 Train on it with every 8th frame held out:

@@ -19,10 +19,10 @@ from typing import Dict, List, Tuple
 
 import numpy as np
 
-from scalar_nerfstudio.scenes.town.config import DEPTH_PNG_MAX_M, TownConfig
+from scalar_nerfstudio.scenes.town.config import TownConfig
 from scalar_nerfstudio.scenes.town.layout import Town
 
-__all__ = ["AERIAL_ALTITUDE_JITTER_M", "AERIAL_CLEARANCE_M", "AERIAL_TILT_DEG", "town_camera_poses", "town_intrinsics"]
+__all__ = ["AERIAL_ALTITUDE_JITTER_M", "AERIAL_CLEARANCE_M", "AERIAL_TILT_DEG", "deepest_aerial_depth_m", "town_camera_poses", "town_intrinsics"]
 
 #: ``aerial``: how far each frame's optical axis leans forward from the vertical (degrees, uniform
 #: in this range). Always forward: the cameras' mean "up" then points up, which nerfstudio's
@@ -33,6 +33,18 @@ AERIAL_TILT_DEG: Tuple[float, float] = (6.0, 14.0)
 AERIAL_CLEARANCE_M: float = 2.0
 #: ``aerial``: each frame's altitude is uniform within this many metres of ``aerial_altitude``.
 AERIAL_ALTITUDE_JITTER_M: float = 0.5
+
+
+def deepest_aerial_depth_m(config: TownConfig) -> float:
+    """The z-depth in metres of the deepest ground pixel an ``aerial`` frame can see: an image corner on the
+    side the axis leans to, at the highest lean and the highest jitter (inf when that corner looks at the
+    horizon or above). The scene writer picks its depth format from it."""
+    half_x = math.tan(math.radians(config.fov_x_deg) / 2.0)
+    half_y = half_x * config.height / config.width
+    tilt = math.radians(AERIAL_TILT_DEG[1])
+    corner_down = math.cos(tilt) - half_y * math.sin(tilt)  # -z of the unnormalised corner ray (z = -1 forward)
+    highest = float(config.aerial_altitude) + AERIAL_ALTITUDE_JITTER_M
+    return highest / corner_down if corner_down > 0 else math.inf
 
 
 def town_intrinsics(config: TownConfig) -> Dict[str, float]:
@@ -166,9 +178,8 @@ def _aerial_poses(town: Town, num_images: int) -> np.ndarray:
     altitude jitters by ``AERIAL_ALTITUDE_JITTER_M`` and heading by 3 degrees.
 
     Raises:
-        ValueError: when the altitude does not clear the tallest roof by ``AERIAL_CLEARANCE_M``, or
-            when a ground pixel would lie beyond the depth PNGs' range (both name the altitude
-            that would do).
+        ValueError: when the altitude does not clear the tallest roof by ``AERIAL_CLEARANCE_M`` (naming
+            the altitude that would do), or when the field of view reaches the horizon.
     """
     config = town.config
     altitude = float(config.aerial_altitude)
@@ -181,17 +192,8 @@ def _aerial_poses(town: Town, num_images: int) -> np.ndarray:
         )
     rng = np.random.default_rng([config.seed, 0xAE21])
     half_x = math.tan(math.radians(config.fov_x_deg) / 2.0)
-    half_y = half_x * config.height / config.width
-    # The deepest ground pixel: an image corner on the side the axis leans to, at the highest jitter.
-    tilt = math.radians(AERIAL_TILT_DEG[1])
-    corner_down = (math.cos(tilt) - half_y * math.sin(tilt))  # -z of the unnormalised corner ray (z = -1 forward)
-    deepest = highest / corner_down if corner_down > 0 else math.inf
-    if not deepest <= DEPTH_PNG_MAX_M:
-        limit = DEPTH_PNG_MAX_M * corner_down - AERIAL_ALTITUDE_JITTER_M
-        raise ValueError(
-            f"TownConfig.aerial_altitude {altitude:g} m puts ground pixels {deepest:.1f} m deep, beyond the depth PNGs' "
-            f"{DEPTH_PNG_MAX_M:.1f} m; fly at {limit:.1f} m or less (or narrow the field of view)"
-        )
+    if not math.isfinite(deepest_aerial_depth_m(config)):
+        raise ValueError(f"TownConfig.fov_x_deg {config.fov_x_deg:g}: the aerial frames' corners would see the horizon; narrow the field of view")
     across = 2.0 * altitude * half_x  # the footprint across the flight line (image rows run across it)
     length, width = config.extent  # the town is centred on the origin; lines run along x
     num_lines = 2 * max(1, math.ceil(width / across))

@@ -32,7 +32,8 @@ CAPTURES = ("rig", "walk", "aerial", "aerial+rig")
 TEXTURES = ("filtered", "point-sampled")
 #: Metres per unit of the 16-bit depth PNGs (nerfstudio's default ``depth_unit_scale_factor``).
 DEPTH_PNG_UNIT_M = 1e-3
-#: The largest depth a 16-bit PNG in millimetres holds; farther points are written as 0 (unknown).
+#: The largest depth a 16-bit PNG in millimetres holds: street frames write farther points as 0 (unknown); a
+#: flight whose ground lies farther writes its depth as float32 ``.npy`` in the same unit instead.
 DEPTH_PNG_MAX_M = 65535 * DEPTH_PNG_UNIT_M
 
 
@@ -76,7 +77,8 @@ class TownConfig:
     """``rig`` only: the cameras' headings in degrees from the driving direction (positive: left)."""
     aerial_altitude: float = 55.0
     """``aerial`` only: flight altitude above the ground in metres (each frame jitters by up to 0.5 m); it
-    must clear the tallest roof by 2 m and keep every ground pixel within the depth PNGs' 65.5 m."""
+    must clear the tallest roof by 2 m. Above about 60 m (ground pixels beyond the 16-bit PNGs' 65.5 m) the
+    scene's depth images are written as ``.npy`` instead of PNG."""
     supersample: int = 1
     """Colour samples per pixel along each axis (ss x ss, averaged: anti-aliasing); depth is the
     pixel centre's."""
@@ -119,8 +121,8 @@ class TownConfig:
         if self.capture not in CAPTURES:
             raise ValueError(f"TownConfig.capture must be one of {list(CAPTURES)}, got {self.capture!r}")
         altitude = self.aerial_altitude
-        if not (isinstance(altitude, (int, float, np.integer, np.floating)) and math.isfinite(altitude) and 0.0 < altitude < DEPTH_PNG_MAX_M):
-            raise ValueError(f"TownConfig.aerial_altitude must be a positive number of metres below {DEPTH_PNG_MAX_M:.1f}, got {altitude!r}")
+        if not (isinstance(altitude, (int, float, np.integer, np.floating)) and math.isfinite(altitude) and altitude > 0.0):
+            raise ValueError(f"TownConfig.aerial_altitude must be a positive finite number of metres, got {altitude!r}")
         headings = self.rig_headings
         if not (isinstance(headings, tuple) and headings and all(isinstance(h, (int, float, np.integer, np.floating)) and math.isfinite(h) and -180.0 <= h <= 180.0 for h in headings)):
             raise ValueError(f"TownConfig.rig_headings must be a non-empty tuple of headings in degrees within [-180, 180], got {headings!r}")

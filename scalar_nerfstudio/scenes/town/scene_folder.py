@@ -7,6 +7,8 @@ Output of :func:`write_town`::
     OUT/depths/frame_XXXXX.png 16-bit depth in millimetres along the optical axis (z-depth, the
                                convention of nerfstudio's depth loaders, is_euclidean_depth=False);
                                0 = sky or farther than 65.535 m
+    OUT/depths/frame_XXXXX.npy instead of the PNGs when an aerial flight's ground lies beyond 65.535 m:
+                               float32 millimetres, the same z-depth (0 = sky); nerfstudio reads both
     OUT/scene.json             generator options, streets and the list of boxes
 
 The frames are numbered in capture order, so nerfstudio's ``--eval-mode interval --eval-interval 8``
@@ -27,7 +29,7 @@ import numpy as np
 from PIL import Image
 
 from scalar_nerfstudio.engine.allocator import keep_render_temporaries
-from scalar_nerfstudio.scenes.town.cameras import town_camera_poses, town_intrinsics
+from scalar_nerfstudio.scenes.town.cameras import deepest_aerial_depth_m, town_camera_poses, town_intrinsics
 from scalar_nerfstudio.scenes.town.config import (
     DEPTH_PNG_MAX_M,
     DEPTH_PNG_UNIT_M,
@@ -39,11 +41,22 @@ from scalar_nerfstudio.scenes.town.config import (
 from scalar_nerfstudio.scenes.town.layout import STYLES, Town, build_town
 from scalar_nerfstudio.scenes.town.render import render_town_image
 
-__all__ = ["iter_frames", "load_town", "read_depth_png", "write_town"]
+__all__ = ["depth_suffix", "iter_frames", "load_town", "read_depth", "write_town"]
 
 
-def read_depth_png(path: Path) -> np.ndarray:
-    """[H, W] metres from a depth PNG written by :func:`write_town` (0 where unknown: sky or too far)."""
+def depth_suffix(config: TownConfig) -> str:
+    """The file type of a scene's depth images: ``.png`` (16-bit millimetres), or ``.npy`` (float32
+    millimetres) when its aerial frames' ground can lie beyond the PNGs' 65.535 m."""
+    aerial = config.capture in ("aerial", "aerial+rig")
+    return ".npy" if aerial and deepest_aerial_depth_m(config) > DEPTH_PNG_MAX_M else ".png"
+
+
+def read_depth(path: Path) -> np.ndarray:
+    """[H, W] metres from a depth image written by :func:`write_town`, PNG or ``.npy`` (0 where unknown:
+    sky, or beyond a PNG's range)."""
+    path = Path(path)
+    if path.suffix == ".npy":
+        return np.load(path).astype(np.float64) * DEPTH_PNG_UNIT_M
     with Image.open(path) as image:
         return np.asarray(image, dtype=np.float64) * DEPTH_PNG_UNIT_M
 
@@ -52,6 +65,11 @@ def _depth_png(z_depth: np.ndarray) -> np.ndarray:
     """[H, W] metres -> [H, W] uint16 millimetres; inf and > 65.535 m -> 0 (unknown to nerfstudio)."""
     mm = np.where(np.isfinite(z_depth), np.round(z_depth / DEPTH_PNG_UNIT_M), 0.0)
     return np.where(mm > 65535, 0, mm).astype(np.uint16)
+
+
+def _depth_npy(z_depth: np.ndarray) -> np.ndarray:
+    """[H, W] metres -> [H, W] float32 millimetres; inf (sky) -> 0 (unknown to nerfstudio)."""
+    return np.where(np.isfinite(z_depth), z_depth / DEPTH_PNG_UNIT_M, 0.0).astype(np.float32)
 
 
 #: The town of a worker process of :func:`write_town` (built once per worker by ``_worker_init``).
@@ -64,11 +82,16 @@ def _frame_names(num_images: int) -> List[str]:
 
 
 def _write_frames(town: Town, out_dir: Path, poses: np.ndarray, names: Sequence[str], indices: Sequence[int]) -> int:
-    """Render and write frames ``indices`` (image + depth PNG); returns how many."""
+    """Render and write frames ``indices`` (image and depth, as :func:`depth_suffix` says); returns how many."""
+    suffix = depth_suffix(town.config)
     for k in indices:
         rgb, _, z_depth = render_town_image(town, poses[k])
         Image.fromarray((rgb * 255.0 + 0.5).astype(np.uint8)).save(out_dir / "images" / names[k], format="PNG")
-        Image.fromarray(_depth_png(z_depth)).save(out_dir / "depths" / names[k], format="PNG")
+        depth_path = out_dir / "depths" / Path(names[k]).with_suffix(suffix)
+        if suffix == ".npy":
+            np.save(depth_path, _depth_npy(z_depth))
+        else:
+            Image.fromarray(_depth_png(z_depth)).save(depth_path, format="PNG")
     return len(indices)
 
 
@@ -126,6 +149,14 @@ class _Progress:
         self._close()
 
 
+def _depth_description(suffix: str) -> Dict[str, Any]:
+    """scene.json's entry on the depth images (``depth_png``, or ``depth_npy`` for float32 ``.npy`` files)."""
+    far = f"sky, or farther than {DEPTH_PNG_MAX_M} m" if suffix == ".png" else "sky"
+    return {f"depth_{suffix[1:]}": {"folder": "depths", "unit_m": DEPTH_PNG_UNIT_M,
+                                    "kind": "z-depth along the optical axis (nerfstudio's is_euclidean_depth=False convention)",
+                                    "zero_means": far}}
+
+
 def _scene_description(town: Town, names: Sequence[str]) -> Dict[str, Any]:
     config = town.config
     return {
@@ -139,12 +170,7 @@ def _scene_description(town: Town, names: Sequence[str]) -> Dict[str, Any]:
         "street_y": town.street_y.tolist(),
         "street_width": config.street_width,
         "road_width": config.road_width,
-        "depth_png": {
-            "folder": "depths",
-            "unit_m": DEPTH_PNG_UNIT_M,
-            "kind": "z-depth along the optical axis (nerfstudio's is_euclidean_depth=False convention)",
-            "zero_means": f"sky, or farther than {DEPTH_PNG_MAX_M} m",
-        },
+        **_depth_description(depth_suffix(config)),
         "frames": len(names),
         "boxes": [
             {"lo": town.lo[b].tolist(), "hi": town.hi[b].tolist(), "cell": int(town.cell[b]), "style": STYLES[int(town.style[b])], "shops": bool(town.shops[b])}
@@ -168,8 +194,8 @@ def _prepare_output(out_dir: Path, overwrite: bool) -> None:
     except OSError as error:
         raise PermissionError(f"The output folder {out_dir} cannot be written: {error.strerror or error}.") from None
     if overwrite:  # stale frames of an earlier, larger scene would be left behind
-        for folder in ("images", "depths"):
-            for stale in (out_dir / folder).glob("frame_*.png"):
+        for folder, pattern in (("images", "frame_*.png"), ("depths", "frame_*.png"), ("depths", "frame_*.npy")):
+            for stale in (out_dir / folder).glob(pattern):
                 stale.unlink()
         for name in ("transforms.json", "scene.json"):
             if (out_dir / name).exists():
@@ -218,7 +244,7 @@ def write_town(out_dir: Path, config: Optional[TownConfig] = None, *, progress: 
     finally:
         bar.close()
     frames = [
-        {"file_path": f"images/{name}", "depth_file_path": f"depths/{name}", "transform_matrix": pose.tolist()}
+        {"file_path": f"images/{name}", "depth_file_path": f"depths/{Path(name).with_suffix(depth_suffix(config))}", "transform_matrix": pose.tolist()}
         for name, pose in zip(names, poses)
     ]
     transforms = {
