@@ -282,21 +282,21 @@ class ScalarDataManager(VanillaDataManager[ScalarInputDataset]):
                 f"{num_eval if eval_fit == -1 else eval_fit} of {num_eval} eval images at a time, a new random subset "
                 f"every {self.config.image_resample_every} steps"
             )
-        config = self.config
-        bounded = train_fit != -1 and config.train_num_images_to_sample_from == -1
         assert self.train_dataset is not None
         CONSOLE.print("Setting up training dataset...")
-        self.train_pixel_sampler = self._get_pixel_sampler(self.train_dataset, config.train_num_rays_per_batch)
-        self.train_image_dataloader = CacheDataloader(
-            Uint8Images(self.train_dataset) if self.caches_uint8 else self.train_dataset,  # type: ignore[arg-type]
-            num_images_to_sample_from=train_fit if bounded else config.train_num_images_to_sample_from,
-            num_times_to_repeat_images=config.image_resample_every if bounded else config.train_num_times_to_repeat_images,
-            device=self.device,
-            num_workers=self.world_size * 4,
-            pin_memory=True,
-            collate_fn=config.collate_fn,
-            exclude_batch_keys_from_device=self.exclude_batch_keys_from_device,
-        )
+        self.train_pixel_sampler = self._get_pixel_sampler(self.train_dataset, self.config.train_num_rays_per_batch)
+        with self._cache_bounded("train", train_fit):
+            config = self.config  # the bounded copy while the loader is built
+            self.train_image_dataloader = CacheDataloader(
+                Uint8Images(self.train_dataset) if self.caches_uint8 else self.train_dataset,  # type: ignore[arg-type]
+                num_images_to_sample_from=config.train_num_images_to_sample_from,
+                num_times_to_repeat_images=config.train_num_times_to_repeat_images,
+                device=self.device,
+                num_workers=self.world_size * 4,
+                pin_memory=True,
+                collate_fn=config.collate_fn,
+                exclude_batch_keys_from_device=self.exclude_batch_keys_from_device,
+            )
         self.iter_train_image_dataloader = iter(self.train_image_dataloader)
         self.train_ray_generator = RayGenerator(self.train_dataset.cameras.to(self.device))
         release_freed_memory()

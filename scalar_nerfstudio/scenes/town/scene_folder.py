@@ -243,8 +243,9 @@ def write_town(out_dir: Path, config: Optional[TownConfig] = None, *, progress: 
                     bar.advance(done)
     finally:
         bar.close()
+    suffix = depth_suffix(config)
     frames = [
-        {"file_path": f"images/{name}", "depth_file_path": f"depths/{Path(name).with_suffix(depth_suffix(config))}", "transform_matrix": pose.tolist()}
+        {"file_path": f"images/{name}", "depth_file_path": f"depths/{Path(name).with_suffix(suffix)}", "transform_matrix": pose.tolist()}
         for name, pose in zip(names, poses)
     ]
     transforms = {
