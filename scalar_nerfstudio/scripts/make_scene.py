@@ -7,6 +7,9 @@ Scenes:
              --capture: a rig of street-level cameras on a vehicle (default), a walk, or a
              drone's aerial survey looking down.
   courtyard  the small courtyard of scalar-nerf-demo (transforms.json, images/)
+  facade     a long wall painted with a random mural, photographed on a walk along it (transforms.json,
+             images/): each camera sees a few metres of it, so a small hash table holds less of the wall
+             than a block of it does
 
 Train on it with every 8th frame held out:
   ns-train scalar-nerf --data DIR nerfstudio-data --eval-mode interval --eval-interval 8
@@ -58,11 +61,11 @@ _positive_float = _number(float, 0.0, "a positive number", above=True)
 def build_parser() -> argparse.ArgumentParser:
     """The command's options."""
     parser = _Parser(prog=PROG, description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--scene", choices=("town", "courtyard"), default="town", help="which scene (default: town)")
+    parser.add_argument("--scene", choices=("town", "courtyard", "facade"), default="town", help="which scene (default: town)")
     parser.add_argument("--output", "-o", type=Path, required=True, help="scene folder to write (created; must be empty unless --overwrite)")
-    parser.add_argument("--num-images", type=_positive_int, default=None, help="frames (town: 300, courtyard: 40)")
-    parser.add_argument("--width", type=_positive_int, default=None, help="image width in pixels (town: 320, courtyard: 160)")
-    parser.add_argument("--height", type=_positive_int, default=None, help="image height in pixels (town: 240, courtyard: 120)")
+    parser.add_argument("--num-images", type=_positive_int, default=None, help="frames (town: 300, courtyard: 40, facade: 48)")
+    parser.add_argument("--width", type=_positive_int, default=None, help="image width in pixels (town: 320, courtyard: 160, facade: 96)")
+    parser.add_argument("--height", type=_positive_int, default=None, help="image height in pixels (town: 240, courtyard: 120, facade: 72)")
     parser.add_argument("--seed", type=_non_negative_int, default=0, help="random seed; the same seed writes byte-identical files (default 0)")
     town = parser.add_argument_group("town only")
     town.add_argument("--blocks-x", type=_positive_int, default=None, help="city blocks along x (default 4)")
@@ -88,6 +91,8 @@ def build_parser() -> argparse.ArgumentParser:
                       help="also write the frames to DIR as JPEG photos with their camera's GPS position and focal length in the EXIF "
                            "(for trying scalar-nerf-process-data on a capture of known poses)")
     town.add_argument("--workers", type=_positive_int, default=1, help="processes rendering frames at once (same output; default 1)")
+    facade = parser.add_argument_group("facade only")
+    facade.add_argument("--wall-length", type=_positive_float, default=None, help="length of the wall in metres (default 40)")
     parser.add_argument("--overwrite", action="store_true", help="write into a non-empty folder, replacing an earlier scene's frames")
     parser.add_argument("--quiet", action="store_true", help="no progress bar or summary")
     return parser
@@ -126,6 +131,7 @@ def _town(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
     from scalar_nerfstudio.scenes.town import TownConfig, blocks_for_extent, build_town, town_camera_poses, write_town
     from scalar_nerfstudio.scenes.town.photos import write_photos
 
+    _refuse_options_of_other_scenes(args, parser)
     options = {}
     for key, name in (("num_images", "num_images"), ("width", "width"), ("height", "height"), ("block_size", "block_size"),
                       ("street_width", "street_width"), ("road_width", "road_width"), ("fov", "fov_x_deg"), ("supersample", "supersample"),
@@ -196,19 +202,39 @@ def _automatic_blocks_line(config, poses) -> str:
     return f"scalar-nerf's automatic K for this capture (eval interval 8, T = 2^19): {k} (layout R = {scale.layout_pixels:.0f} px)."
 
 
+_TOWN_ONLY = ("blocks_x", "blocks_y", "extent", "block_size", "street_width", "road_width", "fov", "supersample", "textures", "capture",
+              "rig_headings", "aerial_altitude", "photos")
+
+
+def _refuse_options_of_other_scenes(args: argparse.Namespace, parser: argparse.ArgumentParser) -> None:
+    for scene, names in (("town", _TOWN_ONLY), ("facade", ("wall_length",))):
+        given = [f"--{name.replace('_', '-')}" for name in names if getattr(args, name) is not None]
+        if given and args.scene != scene:
+            parser.error(f"{', '.join(given)}: only for --scene {scene}")
+
+
 def _courtyard(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
     from scalar_nerfstudio.scenes.courtyard import write_scene
 
-    town_only = [f"--{name.replace('_', '-')}" for name in ("blocks_x", "blocks_y", "extent", "block_size", "street_width", "road_width", "fov", "supersample", "textures", "capture", "rig_headings", "aerial_altitude",
-                                                          "photos")
-                 if getattr(args, name) is not None]
-    if town_only:
-        parser.error(f"{', '.join(town_only)}: only for --scene town")
+    _refuse_options_of_other_scenes(args, parser)
     _check_output(parser, args.output, args.overwrite)
     start = time.perf_counter()
     path = write_scene(args.output, num_images=args.num_images or 40, width=args.width or 160, height=args.height or 120, seed=args.seed)
     if not args.quiet:
         print(f"Wrote the courtyard ({args.num_images or 40} frames) to {path.parent} in {time.perf_counter() - start:.1f} s.")
+    return 0
+
+
+def _facade(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
+    from scalar_nerfstudio.scenes.facade import write_scene
+
+    _refuse_options_of_other_scenes(args, parser)
+    _check_output(parser, args.output, args.overwrite)
+    start = time.perf_counter()
+    frames, length = args.num_images or 48, args.wall_length or 40.0
+    path = write_scene(args.output, num_images=frames, width=args.width or 96, height=args.height or 72, length=length, seed=args.seed)
+    if not args.quiet:
+        print(f"Wrote the facade ({frames} frames along {length:g} m of wall) to {path.parent} in {time.perf_counter() - start:.1f} s.")
     return 0
 
 
@@ -219,6 +245,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     try:
         if args.scene == "town":
             return _town(args, parser)
+        if args.scene == "facade":
+            return _facade(args, parser)
         return _courtyard(args, parser)
     except OSError as error:  # e.g. the disk filled up or the folder vanished while writing
         print(f"{PROG}: error: {error}", file=sys.stderr)
