@@ -7,12 +7,12 @@ spread over an area like a large-scale capture, so block splitting has something
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from PIL import Image
+
+from scalar_nerfstudio.scenes.frames import write_frames
 
 _SKY_ZENITH = np.array([0.35, 0.55, 0.85])
 _SKY_HORIZON = np.array([0.85, 0.9, 0.95])
@@ -125,27 +125,4 @@ def write_scene(out_dir: Path, *, num_images: int = 40, width: int = 160, height
     Returns:
         The path of the written ``transforms.json``.
     """
-    out_dir = Path(out_dir)
-    (out_dir / "images").mkdir(parents=True, exist_ok=True)
-    focal = 0.8 * width
-    cx, cy = width / 2.0, height / 2.0
-    u, v = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
-    camera_dirs = np.stack([(u - cx) / focal, -(v - cy) / focal, -np.ones_like(u)], axis=-1).reshape(-1, 3)
-    camera_dirs /= np.linalg.norm(camera_dirs, axis=-1, keepdims=True)
-    frames = []
-    for i, c2w in enumerate(default_camera_poses(num_images, seed)):
-        directions = camera_dirs @ c2w[:3, :3].T
-        origins = np.broadcast_to(c2w[:3, 3], directions.shape)
-        rgb, _ = render_rays(origins, directions)
-        name = f"images/frame_{i:05d}.png"
-        Image.fromarray((rgb.reshape(height, width, 3) * 255.0 + 0.5).astype(np.uint8)).save(out_dir / name)
-        frames.append({"file_path": name, "transform_matrix": c2w.tolist()})
-    transforms = {
-        "camera_model": "OPENCV",
-        "fl_x": focal, "fl_y": focal, "cx": cx, "cy": cy, "w": width, "h": height,
-        "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0,
-        "frames": frames,
-    }
-    path = out_dir / "transforms.json"
-    path.write_text(json.dumps(transforms, indent=2))
-    return path
+    return write_frames(out_dir, default_camera_poses(num_images, seed), render_rays, width=width, height=height)
